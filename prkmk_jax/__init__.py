@@ -1,0 +1,26 @@
+"""Partitioned Runge–Kutta–Munthe-Kaas integrators on (co)tangent bundles of Lie groups."""
+
+from . import groups as groups, tableaus as tableaus
+from .bundles import (
+    AbstractBundle as AbstractBundle,
+    BundleElement as BundleElement,
+    Cartesian as Cartesian,
+    Cotangent as Cotangent,
+    DirectProduct as DirectProduct,
+    Semidirect as Semidirect,
+)
+from .coordinates import AbstractCoordinates as AbstractCoordinates, Cayley as Cayley, Exp as Exp
+from .groups import SO3 as SO3, SOn as SOn, VectorSpace as VectorSpace, hat as hat, vee as vee
+from .integrate import Trajectory as Trajectory, integrate as integrate
+from .series import dexp_inv_series as dexp_inv_series, dexp_series as dexp_series
+from .step import PRKMK as PRKMK, RESULTS as RESULTS
+from .tableaus import (
+    PartitionedTableau as PartitionedTableau,
+    lobatto_iiia_iiib4 as lobatto_iiia_iiib4,
+    stormer_verlet as stormer_verlet,
+    stormer_verlet_adjoint as stormer_verlet_adjoint,
+    symplectic_euler as symplectic_euler,
+    symplectic_euler_adjoint as symplectic_euler_adjoint,
+)
+
+__version__ = "0.1.0"

@@ -1,0 +1,332 @@
+"""The tangent bundle TG (and cotangent bundle T*G) as a Lie group (paper §2).
+
+A bundle is a static descriptor (`DirectProduct(SO3)`, …) holding the base
+group class; its elements are `BundleElement(base, fiber)` pytrees and its
+algebra elements are pairs `(x, y)` of base-algebra arrays.
+
+| bundle                | element (a, u)      | product (Table)                      |
+|-----------------------|---------------------|--------------------------------------|
+| `DirectProduct(G)`    | G × g               | (ab, u + v)                (2.1)     |
+| `Semidirect(G,"left")`| G ⋉_Ad g            | (ab, Ad_{b⁻¹}u + v)        (2.4)     |
+| `Semidirect(G,"right")`| G ⋉_Ad g           | (ab, u + Ad_a v)           Table 2.2 |
+| `Cotangent(G)`        | G ⋉_{Ad*} g*        | (ab, Ad*_b μ + ν)          §5.2      |
+| `Cartesian(G)`        | G × G               | (a₁b₁, a₂b₂)               Table 2.3 |
+
+Algebra conventions are those of `groups.base`: brackets are commutators in
+a faithful matrix representation and every df⁻¹ is right-trivialised,
+df_U(V) = d/dt f(U + tV)·f(U)⁻¹. For the semidirect product that
+representation is a + ε a u (left) or a + ε u a (right) over dual numbers
+ε² = 0; in both the algebra element (x, y) is x + εy, which gives the bracket
+of Table 2.2 and the following exact forms, obtained by expanding an analytic
+function Φ(U, X) of the dual-number matrices:
+
+    Φ(u + εv, x + εy) = Φ(u, x) + ε (Φ(u, y) + D_uΦ(u, x)[v]).
+
+Applied to Φ = dexp⁻¹ this is `_dual_lift` below (the exact semidirect dexp⁻¹).
+
+The semidirect Cayley map is the one of §4.4, the Cayley transform for the
+algebra product (u, v)·(x, y) = (ux, −ad_x v) of (4.16):
+cay(u, v) = (cay(u), (I ± ½ad_u)⁻¹ v) (+ left, − right trivialisation). It is
+not the Cayley transform of the dual-number representation (the two differ at
+second order in U); both are valid coordinates. Its inverse differential is
+derived in `AbstractSemidirect.dcayley_inv`. The bracket-only formula printed
+in §4.4, (dcay⁻¹_u x, y − ½([u,y] + [v,x]) − ¼[u,[x,v]]), agrees with it on
+so(3) but not on so(n), n ≥ 4 (see `paper_semidirect_dcayley_inv`).
+"""
+
+import abc
+from typing import ClassVar, Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, PyTree
+
+from .groups.base import AbstractLieGroup, AbstractQuadraticGroup
+
+AlgebraPair = tuple[Array, Array]
+
+
+class BundleElement(eqx.Module):
+    """A point of a bundle group: a base-group element and its fiber part."""
+
+    base: AbstractLieGroup
+    """The configuration a ∈ G."""
+    fiber: PyTree
+    """An algebra array u ∈ g or μ ∈ g* (shape `(*batch, *algebra_shape)`), or a
+    second group element for `Cartesian`."""
+
+
+def _solve_shifted_ad(base, u, v, alpha):
+    """w = (I + α ad_u)⁻¹ v, by a dense solve on the flattened base algebra."""
+    nd = base.algebra_ndim
+    if u.ndim > nd:
+        return jax.vmap(lambda uu, vv: _solve_shifted_ad(base, uu, vv, alpha))(u, v)
+    ad = jax.jacfwd(lambda w: base.bracket(u, w))(v).reshape(v.size, v.size)
+    eye = jnp.eye(v.size, dtype=v.dtype)
+    return jnp.linalg.solve(eye + alpha * ad, v.reshape(-1)).reshape(v.shape)
+
+
+def _dual_lift(fn, u, v, x, y):
+    """ε-expansion of Φ(u + εv, x + εy) for Φ = fn (see module docstring)."""
+    first = fn(u, x)
+    _, d_first = jax.jvp(lambda uu: fn(uu, x), (u,), (v,))
+    return first, fn(u, y) + d_first
+
+
+class AbstractBundle(eqx.Module):
+    """A (co)tangent bundle of `base` made a Lie group."""
+
+    base: eqx.AbstractVar[type[AbstractLieGroup]]
+    fiber_is_group: ClassVar[bool]
+    """True where the second factor is a group element (G×G)."""
+
+    def __check_init__(self):
+        if not (isinstance(self.base, type) and issubclass(self.base, AbstractLieGroup)):
+            raise TypeError(f"{type(self).__name__} needs a base group class such as SO3, got {self.base!r}.")
+
+    @property
+    def supports_cayley(self) -> bool:
+        return issubclass(self.base, AbstractQuadraticGroup)
+
+    # --- element validation ----------------------------------------------------
+    def check(self, y: BundleElement) -> BundleElement:
+        """Static checks (types, shapes; `TypeError`/`ValueError`) and run-time
+        checks of the data (`eqx.error_if`); returns `y` to be used onwards."""
+        if not isinstance(y, BundleElement):
+            raise TypeError(f"{type(self).__name__} elements are BundleElement(base, fiber), got {type(y).__name__}.")
+        if not isinstance(y.base, self.base):
+            raise TypeError(f"the base of this element is {type(y.base).__name__}, but the bundle is over {self.base.__name__}.")
+        zeros = y.base.algebra_zeros()
+        if self.fiber_is_group:
+            if not isinstance(y.fiber, self.base):
+                raise TypeError(f"{type(self).__name__} needs a {self.base.__name__} fiber, got {type(y.fiber).__name__}.")
+            fiber_shape = y.fiber.algebra_zeros().shape
+        else:
+            if isinstance(y.fiber, AbstractLieGroup):
+                raise TypeError(f"{type(self).__name__} needs an algebra-array fiber, got a {type(y.fiber).__name__} element.")
+            fiber_shape = jnp.shape(y.fiber)
+        if fiber_shape != zeros.shape:
+            raise ValueError(f"fiber shape {fiber_shape} does not match the base algebra shape {zeros.shape}.")
+        base = y.base.check()
+        if self.fiber_is_group:
+            fiber = y.fiber.check()
+        else:
+            fiber = eqx.error_if(y.fiber, ~jnp.all(jnp.isfinite(y.fiber)), "bundle fiber is not finite (NaN or inf).")
+        return BundleElement(base, fiber)
+
+    def algebra_zeros(self, y: BundleElement) -> AlgebraPair:
+        z = y.base.algebra_zeros()
+        return z, jnp.zeros_like(z)
+
+    def identity_like(self, y: BundleElement) -> BundleElement:
+        fiber = y.fiber.identity_like() if self.fiber_is_group else jnp.zeros_like(y.fiber)
+        return BundleElement(y.base.identity_like(), fiber)
+
+    # --- group and algebra ---------------------------------------------------------
+    @abc.abstractmethod
+    def multiply(self, a: BundleElement, b: BundleElement) -> BundleElement:
+        """The group product a·b."""
+
+    @abc.abstractmethod
+    def inverse(self, a: BundleElement) -> BundleElement:
+        """The group inverse."""
+
+    @abc.abstractmethod
+    def bracket(self, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
+        """The bracket of the bundle algebra."""
+
+    @abc.abstractmethod
+    def exp(self, U: AlgebraPair) -> BundleElement:
+        """The exponential map of the bundle."""
+
+    @abc.abstractmethod
+    def log(self, a: BundleElement) -> AlgebraPair:
+        """Inverse of `exp` near the identity."""
+
+    @abc.abstractmethod
+    def dexp_inv(self, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
+        """Exact dexp⁻¹_U(X) (from the base group's closed form)."""
+
+    @abc.abstractmethod
+    def cayley(self, U: AlgebraPair) -> BundleElement:
+        """The Cayley map of the bundle (§4.4)."""
+
+    @abc.abstractmethod
+    def dcayley_inv(self, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
+        """Exact dcay⁻¹_U(X)."""
+
+
+class DirectProduct(AbstractBundle):
+    """TG ≅ G × g, the direct product (paper §2.1, Table 2.1)."""
+
+    base: type[AbstractLieGroup] = eqx.field(static=True)
+    fiber_is_group: ClassVar[bool] = False
+
+    def multiply(self, a, b):
+        return BundleElement(a.base.multiply(b.base), a.fiber + b.fiber)
+
+    def inverse(self, a):
+        return BundleElement(a.base.inverse(), -a.fiber)
+
+    def bracket(self, U, X):
+        return self.base.bracket(U[0], X[0]), jnp.zeros_like(X[1])
+
+    def exp(self, U):
+        return BundleElement(self.base.exp(U[0]), U[1])
+
+    def log(self, a):
+        return a.base.log(), a.fiber
+
+    def dexp_inv(self, U, X):
+        return self.base.dexp_inv(U[0], X[0]), X[1]
+
+    def cayley(self, U):
+        return BundleElement(self.base.cayley(U[0]), U[1])
+
+    def dcayley_inv(self, U, X):
+        return self.base.dcayley_inv(U[0], X[0]), X[1]
+
+
+class Cartesian(AbstractBundle):
+    """TG ≅ G × G, the Cartesian product (paper §2.3, Table 2.3)."""
+
+    base: type[AbstractLieGroup] = eqx.field(static=True)
+    fiber_is_group: ClassVar[bool] = True
+
+    def multiply(self, a, b):
+        return BundleElement(a.base.multiply(b.base), a.fiber.multiply(b.fiber))
+
+    def inverse(self, a):
+        return BundleElement(a.base.inverse(), a.fiber.inverse())
+
+    def bracket(self, U, X):
+        return self.base.bracket(U[0], X[0]), self.base.bracket(U[1], X[1])
+
+    def exp(self, U):
+        return BundleElement(self.base.exp(U[0]), self.base.exp(U[1]))
+
+    def log(self, a):
+        return a.base.log(), a.fiber.log()
+
+    def dexp_inv(self, U, X):
+        return self.base.dexp_inv(U[0], X[0]), self.base.dexp_inv(U[1], X[1])
+
+    def cayley(self, U):
+        return BundleElement(self.base.cayley(U[0]), self.base.cayley(U[1]))
+
+    def dcayley_inv(self, U, X):
+        return self.base.dcayley_inv(U[0], X[0]), self.base.dcayley_inv(U[1], X[1])
+
+
+class AbstractSemidirect(AbstractBundle):
+    """G ⋉ g with the lifted product (2.4) in left or right trivialisation.
+
+    exp(u, v) = (exp(u), dexp_{∓u}(v)): the trivialised differential of the
+    base exp, left (−u) or right (+u) as the trivialisation (Table 2.2, §4.4).
+    Cayley: the §4.4 forms (module docstring).
+    """
+
+    trivialization: eqx.AbstractVar[Literal["left", "right"]]
+    fiber_is_group: ClassVar[bool] = False
+
+    def _sign(self):
+        return -1.0 if self.trivialization == "left" else 1.0
+
+    def multiply(self, a, b):
+        if self.trivialization == "left":
+            fiber = b.base.inverse().adjoint(a.fiber) + b.fiber
+        else:
+            fiber = a.fiber + a.base.adjoint(b.fiber)
+        return BundleElement(a.base.multiply(b.base), fiber)
+
+    def inverse(self, a):
+        if self.trivialization == "left":
+            fiber = -a.base.adjoint(a.fiber)
+        else:
+            fiber = -a.base.inverse().adjoint(a.fiber)
+        return BundleElement(a.base.inverse(), fiber)
+
+    def bracket(self, U, X):
+        (u, v), (x, y) = U, X
+        br = self.base.bracket
+        return br(u, x), br(u, y) - br(x, v)
+
+    def exp(self, U):
+        u, v = U
+        return BundleElement(self.base.exp(u), self.base.dexp(self._sign() * u, v))
+
+    def log(self, a):
+        u = a.base.log()
+        return u, self.base.dexp_inv(self._sign() * u, a.fiber)
+
+    def dexp_inv(self, U, X):
+        return _dual_lift(self.base.dexp_inv, U[0], U[1], X[0], X[1])
+
+    def _cayley_fiber(self, u, v):
+        # (cay(−ad_u) − I)/(−ad_u) = (I + ½ad_u)⁻¹ (left); (I − ½ad_u)⁻¹ (right).
+        return _solve_shifted_ad(self.base, u, v, -0.5 * self._sign())
+
+    def cayley(self, U):
+        u, v = U
+        return BundleElement(self.base.cayley(u), self._cayley_fiber(u, v))
+
+    def dcayley_inv(self, U, X):
+        # Differentiate cay(U + tV)·cay(U)⁻¹ with w = fiber of cay(U) and
+        # x_V = dcay⁻¹_u(x); solving the fiber part for y_V gives
+        #   left:  y_V = (I + ½ad_u) Ad_{cay(u)⁻¹} y + ½[x_V, w]
+        #   right: y_V = (I − ½ad_u)(y + [x, w]) − ½[x_V, w].
+        (u, v), (x, y) = U, X
+        br = self.base.bracket
+        w = self._cayley_fiber(u, v)
+        x_v = self.base.dcayley_inv(u, x)
+        if self.trivialization == "left":
+            z = self.base.cayley(-u).adjoint(y)  # cay(−u) = cay(u)⁻¹
+            y_v = z + 0.5 * br(u, z) + 0.5 * br(x_v, w)
+        else:
+            z = y + br(x, w)
+            y_v = z - 0.5 * br(u, z) - 0.5 * br(x_v, w)
+        return x_v, y_v
+
+
+class Semidirect(AbstractSemidirect):
+    """TG ≅ G ⋉_Ad g (paper §2.2, Table 2.2)."""
+
+    base: type[AbstractLieGroup] = eqx.field(static=True)
+    trivialization: Literal["left", "right"] = eqx.field(static=True, default="left")
+
+    def __check_init__(self):
+        if self.trivialization not in ("left", "right"):
+            raise ValueError(f"trivialization must be 'left' or 'right', got {self.trivialization!r}.")
+
+
+class Cotangent(AbstractSemidirect):
+    """T*G ≅ G ⋉_{Ad*} g*, left trivialised (body momenta; paper §3.2, §5.2).
+
+    Product (ab, Ad*_b μ + ν), bracket (ad_u x, −ad*_u ν + ad*_x μ). Only base
+    groups with a bi-invariant pairing are accepted: there Ad*_b = Ad_{b⁻¹} and
+    ad*_u = −ad_u on g* ≅ g, so every formula is that of `Semidirect(G, "left")`
+    with the fiber read as a momentum (for SO(3): Π ∈ ℝ³, Ad*_R Π = RᵀΠ).
+    """
+
+    base: type[AbstractLieGroup] = eqx.field(static=True)
+    trivialization: ClassVar[Literal["left"]] = "left"
+
+    def __check_init__(self):
+        if not self.base.bi_invariant_pairing:
+            raise TypeError(
+                f"Cotangent({self.base.__name__}) needs a base group whose algebra has a bi-invariant pairing "
+                "(g* ≅ g with Ad* = Ad⁻¹); this one does not declare it."
+            )
+
+
+def paper_semidirect_dcayley_inv(bundle: AbstractSemidirect, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
+    """The §4.4 formula as printed: (dcay⁻¹_u x, y − ½([u,y] + [v,x]) − ¼[u,[x,v]]).
+
+    Kept for comparison only: it is the inverse differential of the §4.4
+    Cayley map on so(3) (both trivialisations), but not on so(n) for n ≥ 4,
+    where the derivation through the product (4.16) does not hold.
+    """
+    (u, v), (x, y) = U, X
+    br = bundle.base.bracket
+    return bundle.base.dcayley_inv(u, x), y - 0.5 * (br(u, y) + br(v, x)) - 0.25 * br(u, br(x, v))

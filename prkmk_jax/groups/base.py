@@ -1,0 +1,107 @@
+"""Abstract base groups: the small API every base group G implements.
+
+Conventions used throughout the package (they fix every sign):
+
+* An element is an equinox Module holding arrays; leading batch axes are
+  allowed wherever the shapes in the field docstrings say `*batch`.
+* Algebra elements are plain arrays of shape `(*batch, *algebra_shape)`.
+* `bracket(u, v)` is the matrix commutator uv − vu carried to the array
+  representation, and `ad_u = bracket(u, ·)`.
+* `dexp(u, v)` is the *right-trivialised* differential
+  d/dt exp(u + tv)·exp(u)⁻¹ = Σ_k ad_u^k v/(k+1)!, and `dexp_inv` its inverse
+  Σ_k B_k/k! ad_u^k with B_1 = −1/2 (the RKMK convention). The
+  left-trivialised differential is the right one at −u:
+  exp(u)⁻¹·d/dt exp(u + tv) = dexp(−u, v). The same holds for `dcayley`.
+"""
+
+import abc
+from typing import ClassVar, Self
+
+import equinox as eqx
+from jaxtyping import Array
+
+
+class AbstractLieGroup(eqx.Module):
+    """An element of a (matrix) Lie group G, with the algebra operations of g."""
+
+    algebra_ndim: ClassVar[int]
+    """Number of trailing axes of an algebra element (1: vectors, 2: matrices)."""
+    bi_invariant_pairing: ClassVar[bool]
+    """Whether g ≅ g* through a pairing for which every ad_u is skew-adjoint.
+
+    Then Ad*_g = Ad_{g⁻¹} and ad*_u = −ad_u under the identification, which is
+    what the cotangent bundle G⋉_{Ad*}g* uses (true for compact groups)."""
+
+    @classmethod
+    @abc.abstractmethod
+    def exp(cls, u: Array) -> Self:
+        """The exponential map g → G."""
+
+    @abc.abstractmethod
+    def log(self) -> Array:
+        """Inverse of `exp` on its principal domain."""
+
+    @abc.abstractmethod
+    def multiply(self, other: Self) -> Self:
+        """The group product self·other."""
+
+    @abc.abstractmethod
+    def inverse(self) -> Self:
+        """The group inverse."""
+
+    @abc.abstractmethod
+    def identity_like(self) -> Self:
+        """The identity, with the batch shape and dtype of `self`."""
+
+    @abc.abstractmethod
+    def adjoint(self, u: Array) -> Array:
+        """Ad_g u = g u g⁻¹."""
+
+    @abc.abstractmethod
+    def algebra_zeros(self) -> Array:
+        """A zero algebra element with the batch shape and dtype of `self`."""
+
+    @abc.abstractmethod
+    def check(self) -> Self:
+        """Return `self`, raising at run time (`eqx.error_if`) if it is not
+        a valid element (e.g. not orthogonal, or not finite)."""
+
+    @classmethod
+    @abc.abstractmethod
+    def bracket(cls, u: Array, v: Array) -> Array:
+        """The Lie bracket [u, v]."""
+
+    @classmethod
+    @abc.abstractmethod
+    def dexp(cls, u: Array, v: Array) -> Array:
+        """Right-trivialised differential of exp: Σ ad_u^k v/(k+1)!."""
+
+    @classmethod
+    @abc.abstractmethod
+    def dexp_inv(cls, u: Array, v: Array) -> Array:
+        """Inverse of `dexp` in its exact (or converged-series) form."""
+
+    def __matmul__(self, other: Self) -> Self:
+        return self.multiply(other)
+
+
+class AbstractQuadraticGroup(AbstractLieGroup):
+    """A group on which the Cayley map cay(u) = (1 − u/2)⁻¹(1 + u/2) is a
+    local diffeomorphism g → G: the quadratic groups {X : XᵀJX = J} (paper §4.4)
+    and the additive group ℝⁿ (whose unipotent matrix representation makes
+    cay(u) = exp(u) = translation by u)."""
+
+    @classmethod
+    @abc.abstractmethod
+    def cayley(cls, u: Array) -> Self:
+        """cay(u) = (1 − u/2)⁻¹(1 + u/2)."""
+
+    @classmethod
+    @abc.abstractmethod
+    def dcayley(cls, u: Array, v: Array) -> Array:
+        """Right-trivialised differential (1 − u/2)⁻¹ v (1 + u/2)⁻¹."""
+
+    @classmethod
+    @abc.abstractmethod
+    def dcayley_inv(cls, u: Array, v: Array) -> Array:
+        """Inverse differential (1 − u/2) v (1 + u/2) = v − [u,v]/2 − uvu/4."""

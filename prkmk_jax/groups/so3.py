@@ -1,0 +1,183 @@
+"""SO(3) with closed forms; so(3) is stored as 3-vectors (hat map u ↦ û)."""
+
+from typing import ClassVar, Self
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .base import AbstractQuadraticGroup
+from ._util import orthogonality_defect, taylor_or_exact
+
+# Below this θ² the Taylor branches are used; the exact forms that cancel
+# (θ − sin θ)/θ³ and the dexp⁻¹ coefficient lose ~eps/θ² relative accuracy.
+_SMALL = 1e-2
+
+
+def hat(u: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+    """The skew matrix û with û v = u × v."""
+    x, y, z = u[..., 0], u[..., 1], u[..., 2]
+    zero = jnp.zeros_like(x)
+    return jnp.stack(
+        [
+            jnp.stack([zero, -z, y], axis=-1),
+            jnp.stack([z, zero, -x], axis=-1),
+            jnp.stack([-y, x, zero], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+def vee(m: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
+    """Inverse of `hat` (reads the skew part of `m`)."""
+    return 0.5 * jnp.stack(
+        [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]],
+        axis=-1,
+    )
+
+
+def _theta_sq(u):
+    return jnp.sum(u * u, axis=-1)
+
+
+def _cross_twice(u, v):
+    """û² v = u × (u × v)."""
+    return jnp.cross(u, jnp.cross(u, v))
+
+
+class SO3(AbstractQuadraticGroup):
+    """A rotation in SO(3)."""
+
+    matrix: Float[Array, "*batch 3 3"]
+    """Rotation matrix R with RᵀR = I, det R = 1."""
+
+    algebra_ndim: ClassVar[int] = 1
+    bi_invariant_pairing: ClassVar[bool] = True
+
+    def __check_init__(self):
+        if self.matrix.shape[-2:] != (3, 3):
+            raise ValueError(f"SO3 needs a (..., 3, 3) matrix, got shape {self.matrix.shape}.")
+
+    # --- group -----------------------------------------------------------------
+    @classmethod
+    def exp(cls, u: Float[Array, "*batch 3"]) -> Self:
+        """Rodrigues' formula R = I + (sin θ/θ) û + ((1 − cos θ)/θ²) û²."""
+        t2 = _theta_sq(u)
+        a = taylor_or_exact(t2, [1.0, -1 / 6, 1 / 120, -1 / 5040, 1 / 362880], lambda s: jnp.sin(jnp.sqrt(s)) / jnp.sqrt(s), _SMALL)
+        # (1 − cos θ)/θ² = ½ (sin(θ/2)/(θ/2))² has no cancellation.
+        b = taylor_or_exact(t2, [0.5, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800], lambda s: 0.5 * (jnp.sin(0.5 * jnp.sqrt(s)) / (0.5 * jnp.sqrt(s))) ** 2, _SMALL)
+        uh = hat(u)
+        eye = jnp.eye(3, dtype=u.dtype)
+        return cls(eye + a[..., None, None] * uh + b[..., None, None] * (uh @ uh))
+
+    def log(self) -> Float[Array, "*batch 3"]:
+        """Rotation vector with angle in [0, π], through the unit quaternion
+        (Shepperd's branch choice, robust near θ = π)."""
+        r = self.matrix
+        r00, r11, r22 = r[..., 0, 0], r[..., 1, 1], r[..., 2, 2]
+        trace = r00 + r11 + r22
+        # 4q_k² for the four candidate pivots; they sum to 4, so the largest is ≥ 1.
+        pivots = jnp.stack([1 + trace, 1 + 2 * r00 - trace, 1 + 2 * r11 - trace, 1 + 2 * r22 - trace], axis=-1)
+        best = jnp.argmax(pivots, axis=-1)
+        d21, d02, d10 = r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]
+        s01, s02, s12 = r[..., 0, 1] + r[..., 1, 0], r[..., 0, 2] + r[..., 2, 0], r[..., 1, 2] + r[..., 2, 1]
+        candidates = []
+        for k, (num_w, num_x, num_y, num_z) in enumerate(
+            [
+                (None, d21, d02, d10),
+                (d21, None, s01, s02),
+                (d02, s01, None, s12),
+                (d10, s02, s12, None),
+            ]
+        ):
+            # Double where: the unselected pivots may be ≤ 0.
+            p = jnp.where(best == k, pivots[..., k], 1.0)
+            half = 0.5 * jnp.sqrt(p)
+            denom = 4 * half
+            comps = [half if n is None else n / denom for n in (num_w, num_x, num_y, num_z)]
+            candidates.append(jnp.stack(comps, axis=-1))
+        q = candidates[0]
+        for k in range(1, 4):
+            q = jnp.where((best == k)[..., None], candidates[k], q)
+        q = jnp.where(q[..., :1] < 0, -q, q)  # w ≥ 0 → angle ≤ π
+        w, v = q[..., 0], q[..., 1:]
+        n2 = jnp.sum(v * v, axis=-1)
+        # θ/|v| with θ = 2 atan2(|v|, w); Taylor in |v|² about 0 for w ≈ 1.
+        small = n2 < 1e-10
+        n_safe = jnp.sqrt(jnp.where(small, 1.0, n2))
+        w_safe = jnp.where(small, w, 1.0)
+        factor = jnp.where(
+            small,
+            2.0 / w_safe - (2.0 / 3.0) * n2 / w_safe**3,
+            2.0 * jnp.arctan2(n_safe, w) / n_safe,
+        )
+        return factor[..., None] * v
+
+    def multiply(self, other: Self) -> Self:
+        return SO3(self.matrix @ other.matrix)
+
+    def inverse(self) -> Self:
+        return SO3(jnp.swapaxes(self.matrix, -1, -2))
+
+    def identity_like(self) -> Self:
+        return SO3(jnp.broadcast_to(jnp.eye(3, dtype=self.matrix.dtype), self.matrix.shape))
+
+    def adjoint(self, u: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3"]:
+        """Ad_R u = R u."""
+        return jnp.einsum("...ij,...j->...i", self.matrix, u)
+
+    def algebra_zeros(self) -> Float[Array, "*batch 3"]:
+        return jnp.zeros(self.matrix.shape[:-1], self.matrix.dtype)
+
+    def check(self) -> Self:
+        dtype = self.matrix.dtype
+        tol = jnp.sqrt(jnp.finfo(dtype).eps)
+        matrix = eqx.error_if(self.matrix, ~jnp.all(jnp.isfinite(self.matrix)), "SO3 element is not finite (NaN or inf).")
+        matrix = eqx.error_if(matrix, jnp.any(orthogonality_defect(matrix) > tol), "SO3 element is not orthogonal: max|RᵀR − I| exceeds sqrt(eps).")
+        matrix = eqx.error_if(matrix, jnp.any(jnp.linalg.det(matrix) < 0), "SO3 element has det = −1: a reflection, not a rotation.")
+        return SO3(matrix)
+
+    # --- algebra ---------------------------------------------------------------
+    @classmethod
+    def bracket(cls, u, v):
+        """[û, v̂] = (u × v)^."""
+        return jnp.cross(u, v)
+
+    @classmethod
+    def dexp(cls, u, v):
+        """dexp_u v = v + ((1 − cos θ)/θ²) u×v + ((θ − sin θ)/θ³) u×(u×v)."""
+        t2 = _theta_sq(u)
+        b = taylor_or_exact(t2, [0.5, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800], lambda s: 0.5 * (jnp.sin(0.5 * jnp.sqrt(s)) / (0.5 * jnp.sqrt(s))) ** 2, _SMALL)
+        c = taylor_or_exact(t2, [1 / 6, -1 / 120, 1 / 5040, -1 / 362880, 1 / 39916800], lambda s: (jnp.sqrt(s) - jnp.sin(jnp.sqrt(s))) / s**1.5, _SMALL)
+        return v + b[..., None] * jnp.cross(u, v) + c[..., None] * _cross_twice(u, v)
+
+    @classmethod
+    def dexp_inv(cls, u, v):
+        """dexp_u⁻¹ v = v − ½ u×v + ((1 − (θ/2)cot(θ/2))/θ²) u×(u×v), |θ| < 2π."""
+        t2 = _theta_sq(u)
+
+        def exact(s):
+            th = jnp.sqrt(s)
+            return (1.0 - 0.5 * th / jnp.tan(0.5 * th)) / s
+
+        c = taylor_or_exact(t2, [1 / 12, 1 / 720, 1 / 30240, 1 / 1209600, 1 / 47900160], exact, _SMALL)
+        return v - 0.5 * jnp.cross(u, v) + c[..., None] * _cross_twice(u, v)
+
+    @classmethod
+    def cayley(cls, u) -> Self:
+        """cay(u) = I + 4/(4 + θ²) (û + û²/2)."""
+        uh = hat(u)
+        k = 4.0 / (4.0 + _theta_sq(u))
+        eye = jnp.eye(3, dtype=u.dtype)
+        return cls(eye + k[..., None, None] * (uh + 0.5 * uh @ uh))
+
+    @classmethod
+    def dcayley(cls, u, v):
+        """dcay_u v = 4/(4 + θ²) (v + ½ u×v)."""
+        k = 4.0 / (4.0 + _theta_sq(u))
+        return k[..., None] * (v + 0.5 * jnp.cross(u, v))
+
+    @classmethod
+    def dcayley_inv(cls, u, v):
+        """dcay_u⁻¹ v = v − ½ u×v + ¼ (u·v) u  (since ûv̂û = −(u·v)û)."""
+        return v - 0.5 * jnp.cross(u, v) + 0.25 * jnp.sum(u * v, axis=-1, keepdims=True) * u

@@ -1,0 +1,72 @@
+"""The additive group ℝⁿ (any trailing shape): product is +, exp is the identity."""
+
+from typing import ClassVar, Self
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .base import AbstractQuadraticGroup
+
+
+class VectorSpace(AbstractQuadraticGroup):
+    """An element of the abelian group (ℝⁿ, +).
+
+    With it, `Cartesian(VectorSpace)` is the classical phase space ℝⁿ×ℝⁿ and a
+    PRKMK step there is exactly the classical partitioned RK step.
+    """
+
+    value: Float[Array, "*batch n"]
+    """The vector."""
+
+    algebra_ndim: ClassVar[int] = 1
+    bi_invariant_pairing: ClassVar[bool] = True
+
+    @classmethod
+    def exp(cls, u) -> Self:
+        return cls(u)
+
+    def log(self):
+        return self.value
+
+    def multiply(self, other: Self) -> Self:
+        return VectorSpace(self.value + other.value)
+
+    def inverse(self) -> Self:
+        return VectorSpace(-self.value)
+
+    def identity_like(self) -> Self:
+        return VectorSpace(jnp.zeros_like(self.value))
+
+    def adjoint(self, u):
+        return u
+
+    def algebra_zeros(self):
+        return jnp.zeros_like(self.value)
+
+    def check(self) -> Self:
+        return VectorSpace(eqx.error_if(self.value, ~jnp.all(jnp.isfinite(self.value)), "VectorSpace element is not finite (NaN or inf)."))
+
+    @classmethod
+    def bracket(cls, u, v):
+        return jnp.zeros_like(u)
+
+    @classmethod
+    def dexp(cls, u, v):
+        return v
+
+    @classmethod
+    def dexp_inv(cls, u, v):
+        return v
+
+    @classmethod
+    def cayley(cls, u) -> Self:
+        return cls(u)
+
+    @classmethod
+    def dcayley(cls, u, v):
+        return v
+
+    @classmethod
+    def dcayley_inv(cls, u, v):
+        return v

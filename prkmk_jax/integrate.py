@@ -1,0 +1,101 @@
+"""Fixed-step integration of a PRKMK method with `lax.scan`."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax import core
+from jaxtyping import Array, PyTree
+
+from .bundles import BundleElement
+from .step import PRKMK, RESULTS, VectorField
+
+
+class Trajectory(eqx.Module):
+    """Saved states of a fixed-step run."""
+
+    ts: Array
+    """Save times, shape `(num_saves,)`, starting with `t0`."""
+    ys: BundleElement
+    """States with a leading time axis of length `num_saves`."""
+    result: RESULTS
+    """`RESULTS.successful`, or the first failure (an implicit stage that did
+    not converge, a non-finite state)."""
+    stats: dict
+    """`num_iterations`: total implicit iterations; `max_iterations_per_step`."""
+
+
+def _is_concrete(x) -> bool:
+    try:
+        float(x)
+        return True
+    except (TypeError, core.ConcretizationTypeError):
+        return False
+
+
+def _check_args(args):
+    def check(leaf):
+        if eqx.is_inexact_array(leaf):
+            return eqx.error_if(leaf, ~jnp.all(jnp.isfinite(leaf)), "args contain a non-finite value (NaN or inf).")
+        return leaf
+
+    return jax.tree.map(check, args)
+
+
+def integrate(
+    solver: PRKMK,
+    vector_field: VectorField,
+    y0: BundleElement,
+    t0: float | Array,
+    dt: float | Array,
+    num_steps: int,
+    args: PyTree = None,
+    *,
+    save_every: int = 1,
+    throw: bool = True,
+) -> Trajectory:
+    """Integrate from `t0` with `num_steps` steps of size `dt`, saving `y0`
+    and every `save_every`-th state.
+
+    Pure and jittable (wrap it in `jax.jit`/`eqx.filter_jit` with the
+    integers static), differentiable with respect to `y0` and `args`, and
+    `vmap`-able over batches of `y0` and `args`. With `throw=True` a failed
+    implicit stage or a non-finite state raises at run time; otherwise it is
+    reported in `Trajectory.result`.
+    """
+    if not isinstance(solver, PRKMK):
+        raise TypeError(f"solver must be a PRKMK, got {type(solver).__name__}.")
+    for name, value, low in (("num_steps", num_steps, 1), ("save_every", save_every, 1)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            raise ValueError(f"{name} must be an int ≥ {low}, got {value!r}.")
+    if num_steps % save_every:
+        raise ValueError(f"save_every={save_every} must divide num_steps={num_steps}.")
+    if _is_concrete(dt):
+        if not float(dt) > 0:
+            raise ValueError(f"dt must be > 0 and finite, got {dt}.")
+    y0 = solver.bundle.check(y0)
+    dtype = jnp.result_type(*jax.tree.leaves(y0))
+    dt = jnp.asarray(dt, dtype)
+    dt = eqx.error_if(dt, ~(dt > 0), "dt must be > 0 and finite.")
+    t0 = jnp.asarray(t0, dtype)
+    args = _check_args(args)
+    solver.check_vector_field(vector_field, t0, y0, args)
+
+    def one_step(carry, n):
+        y, result, total, worst = carry
+        y_next, step_result, iters = solver.step(vector_field, t0 + n * dt, y, dt, args)
+        result = RESULTS.where(result == RESULTS.successful, step_result, result)
+        return (y_next, result, total + iters, jnp.maximum(worst, iters)), None
+
+    def one_save(carry, first):
+        carry, _ = jax.lax.scan(one_step, carry, first + jnp.arange(save_every))
+        return carry, carry[0]
+
+    zero = jnp.array(0, jnp.int32)
+    init = (y0, RESULTS.successful, zero, zero)
+    num_saves = num_steps // save_every
+    (_, result, total, worst), saved = jax.lax.scan(one_save, init, save_every * jnp.arange(num_saves))
+    ys = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), y0, saved)
+    ts = t0 + dt * save_every * jnp.arange(num_saves + 1, dtype=dtype)
+    if throw:
+        ys = result.error_if(ys, result != RESULTS.successful)
+    return Trajectory(ts, ys, result, {"num_iterations": total, "max_iterations_per_step": worst})

@@ -1,0 +1,179 @@
+"""Partitioned Runge–Kutta tableaus (paper §4.1, eq. (4.2), §5).
+
+The first method advances the first component (ξ → u, the group part), the
+second method the second component (η → v). A tableau validates itself: shapes,
+row sums c = A·1, Σb = 1, and every order condition of the partitioned method
+(one per bicoloured rooted tree) up to the declared order.
+"""
+
+import dataclasses
+import functools
+from fractions import Fraction as F
+
+import numpy as np
+
+
+@functools.cache
+def bicoloured_trees(order: int) -> tuple:
+    """All bicoloured rooted trees with `order` nodes, as canonical nested
+    tuples (colour, (children...)) with children sorted."""
+    if order == 1:
+        return ((0, ()), (1, ()))
+    out = []
+    for colour in (0, 1):
+        for forest in _forests(order - 1, None):
+            out.append((colour, forest))
+    return tuple(out)
+
+
+@functools.cache
+def _forests(size: int, max_tree) -> tuple:
+    """Multisets of trees of total `size`, as non-increasing tuples bounded by `max_tree`."""
+    if size == 0:
+        return ((),)
+    out = []
+    for first_size in range(1, size + 1):
+        for tree in bicoloured_trees(first_size):
+            if max_tree is not None and tree > max_tree:
+                continue
+            for rest in _forests(size - first_size, tree):
+                out.append((tree,) + rest)
+    return tuple(out)
+
+
+def _tree_order(tree) -> int:
+    return 1 + sum(_tree_order(child) for child in tree[1])
+
+
+def _gamma(tree) -> int:
+    g = _tree_order(tree)
+    for child in tree[1]:
+        g *= _gamma(child)
+    return g
+
+
+def _internal_weight(tree, a):
+    """ψ(t)_i = Π_children (A^{colour(child)} ψ(child))_i."""
+    psi = np.ones(a[0].shape[0])
+    for child in tree[1]:
+        psi = psi * (a[child[0]] @ _internal_weight(child, a))
+    return psi
+
+
+@dataclasses.dataclass(frozen=True)
+class PartitionedTableau:
+    """Coefficients of a partitioned RK pair; the stage times are `c_first`
+    (time is integrated as part of the first component, which keeps the order
+    for non-autonomous fields)."""
+
+    name: str
+    a_first: np.ndarray
+    b_first: np.ndarray
+    c_first: np.ndarray
+    a_second: np.ndarray
+    b_second: np.ndarray
+    c_second: np.ndarray
+    order: int
+    tolerance: float = 1e-12
+
+    def __post_init__(self):
+        for field in ("a_first", "b_first", "c_first", "a_second", "b_second", "c_second"):
+            value = np.asarray(getattr(self, field), dtype=np.float64)
+            value.setflags(write=False)
+            object.__setattr__(self, field, value)
+        s = self.b_first.shape[0]
+        shapes = {
+            "a_first": (s, s), "a_second": (s, s), "b_first": (s,), "b_second": (s,), "c_first": (s,), "c_second": (s,)
+        }
+        for field, shape in shapes.items():
+            if getattr(self, field).shape != shape:
+                raise ValueError(f"{self.name}: {field} has shape {getattr(self, field).shape}, expected {shape} for {s} stages.")
+        if not isinstance(self.order, int) or self.order < 1:
+            raise ValueError(f"{self.name}: order must be a positive int, got {self.order!r}.")
+        tol = self.tolerance
+        for which in ("first", "second"):
+            a, b, c = (getattr(self, f"{x}_{which}") for x in "abc")
+            if not np.allclose(a.sum(axis=1), c, rtol=0, atol=tol):
+                raise ValueError(f"{self.name}: row sums of a_{which} {a.sum(axis=1)} differ from c_{which} {c}.")
+            if abs(b.sum() - 1) > tol:
+                raise ValueError(f"{self.name}: b_{which} sums to {b.sum()}, not 1.")
+        failed = self.violated_conditions(self.order)
+        if failed:
+            raise ValueError(f"{self.name}: {len(failed)} order conditions up to order {self.order} fail, e.g. tree {failed[0][0]} gives {failed[0][1]:.3e} instead of {failed[0][2]:.3e}.")
+
+    @property
+    def num_stages(self) -> int:
+        return self.b_first.shape[0]
+
+    def violated_conditions(self, order: int) -> list:
+        """(tree, b·ψ(t), 1/γ(t)) for each bicoloured tree of order ≤ `order`
+        whose condition b^{colour(root)}·ψ(t) = 1/γ(t) fails."""
+        a = (self.a_first, self.a_second)
+        b = (self.b_first, self.b_second)
+        failed = []
+        for n in range(1, order + 1):
+            for tree in bicoloured_trees(n):
+                value = b[tree[0]] @ _internal_weight(tree, a)
+                target = 1.0 / _gamma(tree)
+                if abs(value - target) > self.tolerance:
+                    failed.append((tree, value, target))
+        return failed
+
+    def is_symplectic(self) -> bool:
+        """b = b̂ and b_i â_ij + b̂_j a_ji − b_i b̂_j = 0 (symplectic PRK conditions)."""
+        b, bh, a, ah = self.b_first, self.b_second, self.a_first, self.a_second
+        cond = b[:, None] * ah + bh[None, :] * a.T - b[:, None] * bh[None, :]
+        return bool(np.allclose(cond, 0, atol=self.tolerance))
+
+    def swapped(self, name: str | None = None) -> "PartitionedTableau":
+        """The pair with the two methods exchanged."""
+        return PartitionedTableau(
+            name or f"{self.name} (swapped)",
+            self.a_second, self.b_second, self.c_second, self.a_first, self.b_first, self.c_first, self.order, self.tolerance
+        )
+
+    def __hash__(self):
+        return hash((self.name, self.order, self.a_first.tobytes(), self.a_second.tobytes(), self.b_first.tobytes(), self.b_second.tobytes()))
+
+    def __eq__(self, other):
+        return isinstance(other, PartitionedTableau) and hash(self) == hash(other)
+
+
+def _f(rows):
+    return np.array([[float(F(x)) for x in row] for row in rows]) if isinstance(rows[0], list) else np.array([float(F(x)) for x in rows])
+
+
+symplectic_euler = PartitionedTableau(
+    "symplectic Euler (4.2)",
+    a_first=_f([["1"]]), b_first=_f(["1"]), c_first=_f(["1"]),
+    a_second=_f([["0"]]), b_second=_f(["1"]), c_second=_f(["0"]),
+    order=1,
+)
+"""Eq. (4.2): implicit Euler on the first component, explicit on the second."""
+
+symplectic_euler_adjoint = symplectic_euler.swapped("symplectic Euler, adjoint")
+"""Explicit Euler on the first component, implicit on the second."""
+
+stormer_verlet = PartitionedTableau(
+    "Störmer–Verlet (Lobatto IIIA–IIIB)",
+    a_first=_f([["0", "0"], ["1/2", "1/2"]]), b_first=_f(["1/2", "1/2"]), c_first=_f(["0", "1"]),
+    a_second=_f([["1/2", "0"], ["1/2", "0"]]), b_second=_f(["1/2", "1/2"]), c_second=_f(["1/2", "1/2"]),
+    order=2,
+)
+"""The §5 pair: 2-stage Lobatto IIIA on the first component, IIIB on the second
+(IIIB's c is written as its row sums, as in the paper)."""
+
+stormer_verlet_adjoint = stormer_verlet.swapped("Störmer–Verlet (Lobatto IIIB–IIIA)")
+"""Lobatto IIIB on the first component, IIIA on the second."""
+
+lobatto_iiia_iiib4 = PartitionedTableau(
+    "Lobatto IIIA–IIIB, 3 stages",
+    a_first=_f([["0", "0", "0"], ["5/24", "1/3", "-1/24"], ["1/6", "2/3", "1/6"]]),
+    b_first=_f(["1/6", "2/3", "1/6"]), c_first=_f(["0", "1/2", "1"]),
+    a_second=_f([["1/6", "-1/6", "0"], ["1/6", "1/3", "0"], ["1/6", "5/6", "0"]]),
+    b_second=_f(["1/6", "2/3", "1/6"]), c_second=_f(["0", "1/2", "1"]),
+    order=4,
+)
+"""3-stage Lobatto IIIA–IIIB pair, order 4, symplectic."""
+
+ALL_TABLEAUS = (symplectic_euler, symplectic_euler_adjoint, stormer_verlet, stormer_verlet_adjoint, lobatto_iiia_iiib4)

@@ -1,0 +1,203 @@
+"""Group axioms, exp/log, brackets and gradients at the identity, for the base
+groups and every bundle group, on hypothesis-sampled elements (near-identity
+ones included)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from jax.scipy.linalg import expm
+
+import prkmk_jax as pk
+from helpers import algebra_vectors, skew
+
+TOL = 1e-12
+
+
+def _close(a, b, tol=TOL):
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=0, atol=tol)
+
+
+def _so4(vec6):
+    return jnp.asarray(skew(4, vec6))
+
+
+BASES = {
+    "SO3": (pk.SO3, lambda v: jnp.asarray(v[:3])),
+    "SO4": (pk.SOn, lambda v: _so4(v[:6] / 2)),
+    "R3": (pk.VectorSpace, lambda v: jnp.asarray(v[:3])),
+}
+
+vectors6 = algebra_vectors(dim=6, max_norm=3.0)
+
+
+@pytest.mark.parametrize("name", BASES)
+@given(a=vectors6, b=vectors6, c=vectors6)
+def test_base_group_axioms(name, a, b, c):
+    group, alg = BASES[name]
+    x, y, z = (group.exp(alg(v)) for v in (a, b, c))
+    _close((x @ y) @ z, x @ (y @ z))
+    _close(x @ x.identity_like(), x)
+    _close(x.identity_like() @ x, x)
+    _close(x @ x.inverse(), x.identity_like())
+    _close(x.inverse() @ x, x.identity_like())
+
+
+@given(u=algebra_vectors(dim=3, max_norm=3.1))
+def test_so3_exp_matches_expm_and_log_inverts(u):
+    u = jnp.asarray(u)
+    r = pk.SO3.exp(u)
+    _close(r.matrix, expm(pk.hat(u)))
+    _close(r.log(), u)
+    _close(pk.SO3.cayley(u).matrix, jnp.linalg.solve(jnp.eye(3) - pk.hat(u) / 2, jnp.eye(3) + pk.hat(u) / 2))
+
+
+@given(v=vectors6)
+def test_son_exp_matches_expm_and_log_inverts(v):
+    u = _so4(v / 2)  # ‖u‖₂ < π keeps log principal
+    r = pk.SOn.exp(u)
+    _close(r.matrix, expm(u))
+    _close(r.log(), u, tol=1e-10)
+
+
+def test_so3_log_near_pi():
+    axis = np.array([1.0, 2.0, -0.5]) / np.linalg.norm([1.0, 2.0, -0.5])
+    for angle in (np.pi - 1e-6, np.pi - 1e-3, 3.0):
+        np.testing.assert_allclose(pk.SO3.exp(jnp.asarray(axis * angle)).log(), axis * angle, atol=1e-9)
+
+
+def test_batched_elements():
+    u = jnp.asarray(np.random.default_rng(0).normal(size=(4, 5, 3)))
+    r = pk.SO3.exp(u)
+    assert r.matrix.shape == (4, 5, 3, 3)
+    _close(r.log(), u)
+    product = r @ pk.SO3.exp(u[1, 1])  # batch (4, 5) times an unbatched element
+    _close(product.matrix[2, 3], (pk.SO3.exp(u[2, 3]) @ pk.SO3.exp(u[1, 1])).matrix)
+    m = pk.SOn.exp(jax.vmap(jax.vmap(pk.hat))(u))
+    assert m.matrix.shape == (4, 5, 3, 3)
+    _close(m.matrix, r.matrix)
+
+
+@pytest.mark.parametrize("fn", ["exp", "log", "dexp", "dexp_inv", "cayley", "dcayley", "dcayley_inv"])
+def test_so3_gradients_finite_and_correct_at_identity(fn):
+    v = jnp.array([0.3, -0.2, 0.5])
+    funcs = {
+        "exp": lambda u: pk.SO3.exp(u).matrix,
+        "log": lambda u: pk.SO3.exp(u).log(),
+        "dexp": lambda u: pk.SO3.dexp(u, v),
+        "dexp_inv": lambda u: pk.SO3.dexp_inv(u, v),
+        "cayley": lambda u: pk.SO3.cayley(u).matrix,
+        "dcayley": lambda u: pk.SO3.dcayley(u, v),
+        "dcayley_inv": lambda u: pk.SO3.dcayley_inv(u, v),
+    }
+    f = funcs[fn]
+    jac = jax.jacfwd(f)(jnp.zeros(3))
+    jac_rev = jax.jacrev(f)(jnp.zeros(3))
+    assert np.all(np.isfinite(jac)) and np.all(np.isfinite(jac_rev))
+    eps = 1e-6
+    fd = np.stack([(f(eps * e) - f(-eps * e)) / (2 * eps) for e in jnp.eye(3)], axis=-1)
+    np.testing.assert_allclose(jac, fd, atol=1e-8)
+    np.testing.assert_allclose(jac_rev, fd, atol=1e-8)
+
+
+# --- bundle groups ----------------------------------------------------------------------
+BUNDLES = {
+    "direct": pk.DirectProduct(pk.SO3),
+    "semidirect-left": pk.Semidirect(pk.SO3, "left"),
+    "semidirect-right": pk.Semidirect(pk.SO3, "right"),
+    "cotangent": pk.Cotangent(pk.SO3),
+    "cartesian": pk.Cartesian(pk.SO3),
+    "semidirect-left-SO4": pk.Semidirect(pk.SOn, "left"),
+    "cartesian-SO4": pk.Cartesian(pk.SOn),
+    "direct-SO4": pk.DirectProduct(pk.SOn),
+    "semidirect-right-R3": pk.Semidirect(pk.VectorSpace, "right"),
+}
+
+
+def bundle_algebra(bundle, a, b):
+    if bundle.base is pk.SOn:
+        return _so4(a / 2), _so4(b / 2)
+    return jnp.asarray(a[:3]), jnp.asarray(b[:3])
+
+
+def tangent_to_algebra(bundle, tangent):
+    """The algebra pair of a tangent vector at the identity of the bundle."""
+
+    def base_part(t):
+        if isinstance(t, pk.SO3):
+            return pk.vee(t.matrix)
+        if isinstance(t, pk.SOn):
+            return t.matrix
+        return t.value
+
+    second = base_part(tangent.fiber) if bundle.fiber_is_group else tangent.fiber
+    return base_part(tangent.base), second
+
+
+def element(bundle, a, b):
+    return bundle.exp(bundle_algebra(bundle, a, b))
+
+
+@pytest.mark.parametrize("name", BUNDLES)
+@given(a=vectors6, b=vectors6, c=vectors6, d=vectors6, e=vectors6, f=vectors6)
+def test_bundle_group_axioms(name, a, b, c, d, e, f):
+    bundle = BUNDLES[name]
+    x, y, z = element(bundle, a, b), element(bundle, c, d), element(bundle, e, f)
+    mul = bundle.multiply
+    _close(mul(mul(x, y), z), mul(x, mul(y, z)))
+    one = bundle.identity_like(x)
+    _close(mul(x, one), x)
+    _close(mul(one, x), x)
+    _close(mul(x, bundle.inverse(x)), one)
+    _close(mul(bundle.inverse(x), x), one)
+
+
+@pytest.mark.parametrize("name", BUNDLES)
+@given(a=algebra_vectors(dim=6, max_norm=1.5), b=vectors6)
+def test_bundle_log_inverts_exp(name, a, b):
+    bundle = BUNDLES[name]
+    U = bundle_algebra(bundle, a, b)
+    _close(bundle.log(bundle.exp(U)), U, tol=1e-10)
+
+
+@pytest.mark.parametrize("name", BUNDLES)
+def test_bundle_bracket_is_the_group_commutator(name):
+    """[X, Y] = ∂_t ∂_s exp(tX) exp(sY) exp(tX)⁻¹ at 0, by nested jvp."""
+    bundle = BUNDLES[name]
+    rng = np.random.default_rng(3)
+    X = bundle_algebra(bundle, rng.normal(size=6), rng.normal(size=6))
+    Y = bundle_algebra(bundle, rng.normal(size=6), rng.normal(size=6))
+
+    def scaled(t, U):
+        return jax.tree.map(lambda x: t * x, U)
+
+    def adjoint_of_exp(t):
+        g = bundle.exp(scaled(t, X))
+        inner = lambda s: bundle.multiply(bundle.multiply(g, bundle.exp(scaled(s, Y))), bundle.inverse(g))
+        return tangent_to_algebra(bundle, jax.jvp(inner, (0.0,), (1.0,))[1])
+
+    _, bracket = jax.jvp(adjoint_of_exp, (0.0,), (1.0,))
+    _close(bracket, bundle.bracket(X, Y))
+
+
+def test_bundle_element_checks():
+    bundle = pk.Semidirect(pk.SO3)
+    good = pk.BundleElement(pk.SO3.exp(jnp.ones(3)), jnp.zeros(3))
+    bundle.check(good)
+    with pytest.raises(TypeError, match="BundleElement"):
+        bundle.check((good.base, good.fiber))
+    with pytest.raises(TypeError, match="over SO3"):
+        bundle.check(pk.BundleElement(pk.SOn(jnp.eye(3)), jnp.zeros(3)))
+    with pytest.raises(ValueError, match="fiber shape"):
+        bundle.check(pk.BundleElement(good.base, jnp.zeros(4)))
+    with pytest.raises(TypeError, match="SO3 fiber"):
+        pk.Cartesian(pk.SO3).check(good)
+    with pytest.raises(ValueError, match="trivialization"):
+        pk.Semidirect(pk.SO3, "middle")
+    with pytest.raises(TypeError, match="base group class"):
+        pk.DirectProduct("SO3")
+    with pytest.raises(ValueError, match="3, 3"):
+        pk.SO3(jnp.eye(4))
