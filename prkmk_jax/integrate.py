@@ -3,7 +3,6 @@
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax import core
 from jaxtyping import Array, PyTree
 
 from .bundles import BundleElement
@@ -28,7 +27,7 @@ def _is_concrete(x) -> bool:
     try:
         float(x)
         return True
-    except (TypeError, core.ConcretizationTypeError):
+    except (TypeError, jax.errors.ConcretizationTypeError):
         return False
 
 

@@ -60,6 +60,13 @@ def _tree_scale(alpha, tree):
     return jax.tree.map(lambda x: alpha * x, tree)
 
 
+def _default_float_max_norm(x):
+    # FixedPointIteration starts its error state as jnp.array(inf), i.e. in the
+    # default float dtype; returning the norm in that dtype keeps its loop
+    # state type-stable for float32 states under jax_enable_x64.
+    return jnp.asarray(optx.max_norm(x), jnp.result_type(float))
+
+
 class PRKMK(eqx.Module):
     """A partitioned Runge–Kutta–Munthe-Kaas method (Algorithm 4.2).
 
@@ -147,6 +154,10 @@ class PRKMK(eqx.Module):
         c = jnp.asarray(tab.c_first, dtype)
         zeros = self.bundle.algebra_zeros(y)
         s = tab.num_stages
+
+        def field(tt, Y):
+            # (ξ, η) in the state's dtype, whatever precision the user's field returns.
+            return tuple(jnp.asarray(x, z.dtype) for x, z in zip(vector_field(tt, Y, args), zeros))
         slopes = jax.tree.map(lambda z: jnp.zeros((s,) + z.shape, z.dtype), zeros)
 
         def stage_slopes(idx, slopes):
@@ -157,8 +168,7 @@ class PRKMK(eqx.Module):
 
             def one(uu, vv, tt):
                 Y = self._act(self.coordinates.map(self.bundle, (uu, vv)), y)
-                X = tuple(vector_field(tt, Y, args))
-                return self._slope((uu, vv), X)
+                return self._slope((uu, vv), field(tt, Y))
 
             return jax.vmap(one)(u, v, t + c[idx] * dt)
 
@@ -171,7 +181,7 @@ class PRKMK(eqx.Module):
             else:
                 if initial_guess is None:
                     # df⁻¹_0 = I: the slope at U = 0 is the field at yₙ.
-                    initial_guess = tuple(vector_field(t, y, args))
+                    initial_guess = field(t, y)
                 guess = jax.tree.map(lambda x: jnp.broadcast_to(x, (len(idx),) + x.shape), initial_guess)
 
                 def fixed_point_fn(block_slopes, _, idx=idx):
@@ -197,7 +207,7 @@ class PRKMK(eqx.Module):
         atol = default_tol if self.atol is None else self.atol
         solver = self.root_finder
         if solver is None:
-            solver = optx.FixedPointIteration(rtol=rtol, atol=atol)
+            solver = optx.FixedPointIteration(rtol=rtol, atol=atol, norm=_default_float_max_norm)
         if isinstance(solver, optx.AbstractFixedPointSolver):
             sol = optx.fixed_point(fn, solver, guess, max_steps=self.max_iterations, throw=False)
         else:

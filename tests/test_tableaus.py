@@ -1,0 +1,58 @@
+import numpy as np
+import pytest
+
+import prkmk_jax as pk
+from prkmk_jax.tableaus import PartitionedTableau, bicoloured_trees
+
+
+def test_bicoloured_tree_counts():
+    # Number of bicoloured rooted trees with n nodes (OEIS A000151): 2, 4, 14, 52, 214.
+    assert [len(bicoloured_trees(n)) for n in range(1, 6)] == [2, 4, 14, 52, 214]
+
+
+@pytest.mark.parametrize("tab", pk.tableaus.ALL_TABLEAUS, ids=lambda t: t.name)
+def test_declared_order_is_exact(tab):
+    assert tab.violated_conditions(tab.order) == []
+    assert tab.violated_conditions(tab.order + 1) != []  # not secretly of higher order
+    assert tab.is_symplectic()
+
+
+def test_paper_tableaus():
+    se = pk.symplectic_euler
+    assert se.a_first.tolist() == [[1.0]] and se.a_second.tolist() == [[0.0]]
+    sv = pk.stormer_verlet
+    assert sv.a_first.tolist() == [[0, 0], [0.5, 0.5]] and sv.a_second.tolist() == [[0.5, 0], [0.5, 0]]
+    assert pk.stormer_verlet_adjoint.a_first.tolist() == sv.a_second.tolist()
+
+
+def test_user_pair_is_accepted():
+    # Explicit midpoint on both components (a non-symplectic order-2 pair).
+    a = np.array([[0, 0], [0.5, 0]])
+    t = PartitionedTableau("midpoint", a, np.array([0, 1.0]), np.array([0, 0.5]), a, np.array([0, 1.0]), np.array([0, 0.5]), 2)
+    assert t.num_stages == 2 and not t.is_symplectic()
+    assert t.a_first.flags.writeable is False
+
+
+def test_bad_tableaus():
+    one = np.array([1.0])
+    with pytest.raises(ValueError, match="row sums"):
+        PartitionedTableau("x", np.array([[1.0]]), one, np.array([0.5]), np.array([[0.0]]), one, np.array([0.0]), 1)
+    with pytest.raises(ValueError, match="sums to"):
+        PartitionedTableau("x", np.array([[1.0]]), np.array([0.9]), one, np.array([[0.0]]), one, np.array([0.0]), 1)
+    with pytest.raises(ValueError, match="order conditions"):
+        PartitionedTableau("x", np.array([[1.0]]), one, one, np.array([[0.0]]), one, np.array([0.0]), 2)
+    with pytest.raises(ValueError, match="shape"):
+        PartitionedTableau("x", np.eye(2), one, one, np.array([[0.0]]), one, np.array([0.0]), 1)
+    with pytest.raises(ValueError, match="order must be"):
+        PartitionedTableau("x", np.array([[1.0]]), one, one, np.array([[0.0]]), one, np.array([0.0]), 0)
+
+
+def test_stage_blocks():
+    from prkmk_jax.step import stage_blocks
+
+    assert stage_blocks(pk.symplectic_euler) == [((0,), True)]
+    assert stage_blocks(pk.stormer_verlet) == [((0,), True), ((1,), True)]
+    assert stage_blocks(pk.lobatto_iiia_iiib4) == [((0, 1, 2), True)]
+    a = np.array([[0, 0], [1.0, 0]])
+    heun = PartitionedTableau("heun", a, np.array([0.5, 0.5]), np.array([0, 1.0]), a, np.array([0.5, 0.5]), np.array([0, 1.0]), 2)
+    assert stage_blocks(heun) == [((0,), False), ((1,), False)]
