@@ -1,0 +1,26 @@
+"""The README's commands and example stay true."""
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+README = (ROOT / "README.md").read_text()
+
+
+def _bash_commands():
+    blocks = re.findall(r"```bash\n(.*?)```", README, flags=re.S)
+    return [line.strip() for block in blocks for line in block.splitlines() if line.strip()]
+
+
+def test_ci_runs_the_readme_test_command():
+    test_commands = [c for c in _bash_commands() if "pytest" in c]
+    assert len(test_commands) == 1, test_commands
+    assert test_commands[0] in (ROOT / ".ci" / "run").read_text()
+
+
+def test_readme_example_runs():
+    code = re.findall(r"```python\n(.*?)```", README, flags=re.S)[0]
+    code += "\nassert traj.ys.fiber.shape == (51, 3)\nassert traj.result == pk.RESULTS.successful\n"
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT, timeout=300)
