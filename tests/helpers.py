@@ -9,21 +9,10 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 import prkmk_jax as pk
+from prkmk_jax.scenes.rigid_body import random_rotation, symmetric_initial_state
 
 INERTIA = np.array([7 / 8, 5 / 8, 1 / 4])
 M0 = np.array([0.250, 0.625, 0.875])
-
-
-def random_rotation(seed: int) -> np.ndarray:
-    q, r = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
-    q = q * np.sign(np.diag(r))
-    if np.linalg.det(q) < 0:
-        q[:, 0] = -q[:, 0]
-    return q
-
-
-def omega_of(pi, inertia):
-    return pi / inertia
 
 
 # --- free rigid body, (g, Π) with g' = gΩ, Π' = Π × Ω --------------------------------
@@ -64,11 +53,7 @@ def rigid_body_field(bundle, form: str):
 def initial_state(bundle, seed=0, m0=M0):
     q0 = random_rotation(seed)
     if isinstance(bundle, pk.Cartesian):
-        # P₀ = Q₀ exp(sinh⁻¹(M₀/2)) in vector form: Q₀ᵀP₀ − P₀ᵀQ₀ = M̂₀.
-        m = np.linalg.norm(m0)
-        s = np.arcsinh(m / 2) / m * m0
-        p0 = q0 @ np.asarray(pk.SO3.exp(jnp.asarray(s)).matrix)
-        return pk.BundleElement(pk.SO3(jnp.asarray(q0)), pk.SO3(jnp.asarray(p0)))
+        return symmetric_initial_state(q0, m0)  # P₀ = Q₀ exp(sinh⁻¹(M₀/2))
     return pk.BundleElement(pk.SO3(jnp.asarray(q0)), jnp.asarray(m0))
 
 

@@ -1,0 +1,97 @@
+"""Invariants of rigid-body trajectories and the symplecticity defect of a step map.
+
+Everything here takes the body attitude g ∈ SO(n) and body angular momentum
+Π (arrays with any leading axes, e.g. a time axis): a 3-vector for SO(3), or a
+skew (n, n) matrix with `matrix=True`, paired by ⟨A, B⟩ = ½ tr(AᵀB) so that
+both forms agree for n = 3. The scenes convert their states to (g, Π)
+(`scenes.rigid_body.attitude_and_momentum`).
+"""
+
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .groups import SO3
+from .groups._util import orthogonality_defect as _orthogonality_defect
+
+
+def _pairing(a, b, matrix):
+    if matrix:
+        return 0.5 * jnp.sum(a * b, axis=(-2, -1))
+    return jnp.sum(a * b, axis=-1)
+
+
+def energy(momentum: Array, velocity: Array, matrix: bool = False) -> Array:
+    """Hamiltonian H = ½⟨Π, Ω⟩ with Ω = I⁻¹Π the body angular velocity."""
+    return 0.5 * _pairing(momentum, velocity, matrix)
+
+
+def body_momentum_norm(momentum: Array, matrix: bool = False) -> Array:
+    """|Π| = ⟨Π, Π⟩^½, the Casimir of the rigid body."""
+    return jnp.sqrt(_pairing(momentum, momentum, matrix))
+
+
+def spatial_momentum(g: Array, momentum: Array, matrix: bool = False) -> Array:
+    """Ad_g Π: gΠ (vector form) or gΠgᵀ (matrix form), constant along the exact flow."""
+    if matrix:
+        return g @ momentum @ jnp.swapaxes(g, -1, -2)
+    return jnp.einsum("...ij,...j->...i", g, momentum)
+
+
+def orthogonality_defect(g: Float[Array, "*t n n"]) -> Float[Array, "*t"]:
+    """max |gᵀg − I|."""
+    return _orthogonality_defect(g)
+
+
+def max_drift(values: Float[Array, "t *c"], relative: bool = False) -> Array:
+    """max_t |values(t) − values(0)| (over all components), optionally divided by max|values(0)|."""
+    drift = jnp.max(jnp.abs(values - values[0]))
+    if relative:
+        drift = drift / jnp.max(jnp.abs(values[0]))
+    return drift
+
+
+def _dexp_left_matrix(a):
+    """Matrix of v ↦ dexp_{−a}(v) = g⁻¹ d/dt g for g = g₀ exp(a)."""
+    return jax.jacfwd(lambda v: SO3.dexp(-a, v))(jnp.zeros_like(a))
+
+
+def to_canonical(g0, g, pi):
+    """Canonical coordinates (q, p) on T*SO(3) near g₀: g = g₀ exp(q) and
+    p = dexp_{−q}ᵀ Π, the momentum conjugate to q (⟨Π, g⁻¹ġ⟩ = ⟨p, q̇⟩)."""
+    q = SO3(g0.T @ g).log()
+    return q, _dexp_left_matrix(q).T @ pi
+
+
+def from_canonical(g0, q, p):
+    """Inverse of `to_canonical`."""
+    return g0 @ SO3.exp(q).matrix, jnp.linalg.solve(_dexp_left_matrix(q).T, p)
+
+
+def symplecticity_defect(step_map: Callable, g0: Float[Array, "3 3"], pi0: Float[Array, "3"]) -> Array:
+    """max |ΦᵀJΦ − J| for Φ the Jacobian, by `jax.jacfwd`, of a map on T*SO(3)
+    written in the canonical coordinates of `to_canonical` around g₀.
+
+    `step_map(g, Π) -> (g', Π')` is one step of an integrator on (g, Π). The
+    exact flow and every symplectic method give 0 up to round-off.
+    """
+
+    def in_coordinates(z):
+        g, pi = from_canonical(g0, z[:3], z[3:])
+        g1, pi1 = step_map(g, pi)
+        q1, p1 = to_canonical(g0, g1, pi1)
+        return jnp.concatenate([q1, p1])
+
+    z0 = jnp.concatenate(to_canonical(g0, g0, pi0))
+    return canonical_symplecticity_defect(in_coordinates, z0)
+
+
+def canonical_symplecticity_defect(map_: Callable, z0: Float[Array, "2n"]) -> Array:
+    """max |ΦᵀJΦ − J| of a map ℝ²ⁿ → ℝ²ⁿ in canonical coordinates z = (q, p)."""
+    n = z0.shape[0] // 2
+    phi = jax.jacfwd(map_)(z0)
+    eye, zero = jnp.eye(n, dtype=z0.dtype), jnp.zeros((n, n), z0.dtype)
+    J = jnp.block([[zero, eye], [-eye, zero]])
+    return jnp.max(jnp.abs(phi.T @ J @ phi - J))

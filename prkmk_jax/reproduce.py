@@ -1,0 +1,274 @@
+"""Reproduce the paper's §5: `python -m prkmk_jax.reproduce --out DIR`.
+
+Writes `fig5_1.png … fig5_4.png` (exp coordinates left, Cayley right; rows:
+energy error, body-momentum norm, spatial momentum), `results.json` (one
+record per run), `trajectories.npz` (`<run>/Q`, `<run>/P` or `<run>/g`,
+`<run>/Pi`, `<run>/t`, `<run>/inertia`) and prints a summary table.
+"""
+
+import argparse
+import concurrent.futures
+import dataclasses
+import json
+import multiprocessing
+import os
+import platform
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import diagnostics
+from .bundles import AbstractBundle, Cartesian, Cotangent, DirectProduct
+from .coordinates import Cayley, Exp
+from .groups import SO3, SOn
+from .integrate import integrate
+from .scenes import rigid_body as rb
+from .step import PRKMK, RESULTS
+from .tableaus import PartitionedTableau, stormer_verlet, symplectic_euler
+
+COORDINATES = {"exp": Exp(), "cayley": Cayley()}
+SO4_MASSES = np.array([0.9, 0.7, 0.5, 0.3])
+"""J of the n = 4 scene: M = JΩ + ΩJ."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Run:
+    name: str
+    scene: str  # "symmetric" (§5.1) or "unreduced" (§5.2)
+    bundle: AbstractBundle
+    coordinates: str
+    tableau: PartitionedTableau
+    h: float
+    t_end: float
+    figure: str | None = None
+    n: int = 3
+    save_every: int = 1
+
+    @property
+    def num_steps(self) -> int:
+        return int(round(self.t_end / self.h))
+
+
+def paper_runs(time_scale: float = 1.0) -> list[Run]:
+    """The runs of §5 (figures 5.1–5.4) and the companion runs; `time_scale`
+    shortens every T (for smoke tests)."""
+    cart, cot, direct = Cartesian(SO3), Cotangent(SO3), DirectProduct(SO3)
+    runs = []
+    for coords in COORDINATES:
+        runs += [
+            Run(f"sym_SE_{coords}", "symmetric", cart, coords, symplectic_euler, 0.1, 50 * time_scale, "fig5_1"),
+            Run(f"sym_SV_{coords}", "symmetric", cart, coords, stormer_verlet, 0.1, 100 * time_scale, "fig5_2"),
+            Run(f"unreduced_SE_{coords}", "unreduced", cot, coords, symplectic_euler, 0.01, 50 * time_scale, "fig5_3"),
+            Run(f"unreduced_SV_{coords}", "unreduced", cot, coords, stormer_verlet, 0.01, 50 * time_scale, "fig5_4"),
+            Run(f"unreduced_direct_SE_{coords}", "unreduced", direct, coords, symplectic_euler, 0.01, 50 * time_scale),
+            Run(f"unreduced_direct_SV_{coords}", "unreduced", direct, coords, stormer_verlet, 0.01, 50 * time_scale),
+        ]
+    runs += [
+        Run("sym_SE_exp_T1000", "symmetric", cart, "exp", symplectic_euler, 0.1, 1000 * time_scale, save_every=10),
+        Run("sym_so4_SE_exp", "symmetric", Cartesian(SOn), "exp", symplectic_euler, 0.1, 50 * time_scale, n=4),
+        Run("sym_so4_SV_exp", "symmetric", Cartesian(SOn), "exp", stormer_verlet, 0.1, 100 * time_scale, n=4),
+    ]
+    return runs
+
+
+def initial_data(run: Run, seed: int):
+    """(y0, inertia) of a run; attitudes are `rb.random_rotation(seed, n)`."""
+    q0 = rb.random_rotation(seed, run.n)
+    if run.n == 3:
+        inertia = jnp.asarray(rb.PAPER_INERTIA)
+        if run.scene == "symmetric":
+            return rb.symmetric_initial_state(q0, rb.PAPER_MOMENTUM), inertia
+        return rb.from_attitude_and_momentum(run.bundle, jnp.asarray(q0), jnp.asarray(rb.PAPER_MOMENTUM)), inertia
+    a = np.random.default_rng(seed + 1).normal(size=(run.n, run.n))
+    m0 = 0.4 * (a - a.T)
+    return rb.symmetric_initial_state(q0, m0), jnp.asarray(SO4_MASSES)
+
+
+def field_of(run: Run):
+    return rb.symmetric_rigid_body if run.scene == "symmetric" else rb.unreduced_rigid_body(run.bundle)
+
+
+def _step_map(solver, field, bundle, h, inertia):
+    """One step as a map (g, Π) ↦ (g', Π') on T*SO(3)."""
+
+    def step(g, pi):
+        y = rb.from_attitude_and_momentum(bundle, g, pi)
+        y1 = solver.step(field, 0.0, y, h, inertia)[0]
+        return rb.attitude_and_momentum(bundle, y1)
+
+    return step
+
+
+def execute(run: Run, seed: int, symplecticity: bool = True) -> tuple[dict, dict]:
+    """Integrate one run; returns (its results record, its arrays).
+    `symplecticity=False` skips the (compile-heavy) step-map Jacobian."""
+    jax.config.update("jax_enable_x64", True)
+    solver = PRKMK(run.bundle, COORDINATES[run.coordinates], run.tableau, form="body")
+    field = field_of(run)
+    y0, inertia = initial_data(run, seed)
+    simulate = jax.jit(lambda y0, inertia: integrate(solver, field, y0, 0.0, run.h, run.num_steps, inertia, save_every=run.save_every))
+    start = time.perf_counter()
+    compiled = simulate.lower(y0, inertia).compile()
+    compile_s = time.perf_counter() - start
+    start = time.perf_counter()
+    traj = jax.block_until_ready(compiled(y0, inertia))
+    run_s = time.perf_counter() - start
+
+    matrix = run.n != 3
+    g, pi = rb.attitude_and_momentum(run.bundle, traj.ys)
+    omega = rb.angular_velocity(pi, inertia)
+    h_t = diagnostics.energy(pi, omega, matrix)
+    norm_t = diagnostics.body_momentum_norm(pi, matrix)
+    spatial_t = diagnostics.spatial_momentum(g, pi, matrix)
+    ortho = [diagnostics.orthogonality_defect(g)]
+    if isinstance(run.bundle, Cartesian):
+        ortho.append(diagnostics.orthogonality_defect(traj.ys.fiber.matrix))
+    defect = None
+    if run.n == 3 and symplecticity:
+        step = _step_map(solver, field, run.bundle, run.h, inertia)
+        g0, pi0 = rb.attitude_and_momentum(run.bundle, y0)
+        defect = float(jax.jit(lambda g, p: diagnostics.symplecticity_defect(step, g, p))(g0, pi0))
+
+    energy_error = np.asarray(h_t - h_t[0])
+    quarter = max(len(energy_error) // 4, 1)
+    record = {
+        "run": run.name,
+        "scene": run.scene,
+        "representation": f"{type(run.bundle).__name__}({run.bundle.base.__name__})",
+        "n": run.n,
+        "coordinates": run.coordinates,
+        "tableau": run.tableau.name,
+        "h": run.h,
+        "T": run.num_steps * run.h,
+        "num_steps": run.num_steps,
+        "figure": run.figure,
+        "max_abs_energy_error": float(np.abs(energy_error).max()),
+        "energy_error_first_quarter": float(np.abs(energy_error[:quarter]).max()),
+        "energy_error_last_quarter": float(np.abs(energy_error[-quarter:]).max()),
+        "final_energy_error": float(energy_error[-1]),
+        "max_body_momentum_norm_drift": float(diagnostics.max_drift(norm_t, relative=True)),
+        "max_spatial_momentum_drift": float(diagnostics.max_drift(spatial_t, relative=True)),
+        "max_orthogonality_defect": float(max(float(jnp.max(o)) for o in ortho)),
+        "symplecticity_defect": defect,
+        "implicit_iterations_total": int(traj.stats["num_iterations"]),
+        "implicit_iterations_max_per_step": int(traj.stats["max_iterations_per_step"]),
+        "compile_time_s": compile_s,
+        "wall_time_s": run_s,
+        "result": "successful" if traj.result == RESULTS.successful else str(traj.result),
+    }
+    arrays = {"t": np.asarray(traj.ts), "inertia": np.asarray(inertia)}
+    if isinstance(run.bundle, Cartesian):
+        arrays.update(Q=np.asarray(traj.ys.base.matrix), P=np.asarray(traj.ys.fiber.matrix))
+    else:
+        arrays.update(g=np.asarray(traj.ys.base.matrix), Pi=np.asarray(traj.ys.fiber))
+    arrays.update(energy=np.asarray(h_t), body_momentum_norm=np.asarray(norm_t), spatial_momentum=np.asarray(spatial_t))
+    return record, arrays
+
+
+FIGURE_TITLES = {
+    "fig5_1": "Fig. 5.1 — symmetric rigid body, symplectic Euler, h = 0.1",
+    "fig5_2": "Fig. 5.2 — symmetric rigid body, Störmer–Verlet, h = 0.1",
+    "fig5_3": "Fig. 5.3 — unreduced rigid body on T*SO(3), symplectic Euler, h = 0.01",
+    "fig5_4": "Fig. 5.4 — unreduced rigid body on T*SO(3), Störmer–Verlet, h = 0.01",
+}
+
+
+def draw_figure(path: Path, title: str, columns: dict[str, dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(3, 2, figsize=(11, 8.5), sharex=True, constrained_layout=True)
+    for col, (label, arrays) in enumerate(columns.items()):
+        t = arrays["t"]
+        ax = axes[0, col]
+        ax.plot(t, arrays["energy"] - arrays["energy"][0], lw=0.8)
+        ax.set_title(f"{label} coordinates")
+        ax.set_ylabel("H(t) − H(0)")
+        ax = axes[1, col]
+        ax.plot(t, arrays["body_momentum_norm"] - arrays["body_momentum_norm"][0], lw=0.8)
+        ax.set_ylabel("|Π(t)| − |Π(0)|")
+        ax = axes[2, col]
+        m = arrays["spatial_momentum"]
+        for i in range(3):
+            ax.plot(t, m[:, i] - m[0, i], lw=0.8, label=f"m{i + 1}")
+        ax.set_ylabel("m(t) − m(0), m = gΠ")
+        ax.set_xlabel("t")
+        ax.legend(loc="upper right", fontsize=8)
+    fig.suptitle(title)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> list[dict]:
+    parser = argparse.ArgumentParser(description="Reproduce the numerical experiments of Engø (2003), §5.")
+    parser.add_argument("--out", type=Path, default=Path("figures"), help="output directory")
+    parser.add_argument("--seed", type=int, default=rb.PAPER_SEED, help="seed of the random initial attitudes")
+    parser.add_argument("--time-scale", type=float, default=1.0, help="multiply every T (e.g. 0.05 for a smoke test)")
+    parser.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes (default: up to 2)")
+    args = parser.parse_args(argv)
+    jax.config.update("jax_enable_x64", True)
+    args.out.mkdir(parents=True, exist_ok=True)
+
+    runs = paper_runs(args.time_scale)
+    # The step map, hence its symplecticity defect, depends on (bundle,
+    # coordinates, tableau, h, initial data) only: compute it once per key.
+    key = lambda r: (r.scene, r.bundle, r.coordinates, r.tableau.name, r.h, r.n)
+    first_of_key = {}
+    for r in runs:
+        first_of_key.setdefault(key(r), r.name)
+    jobs = [(r, args.seed, first_of_key[key(r)] == r.name) for r in runs]
+    start = time.perf_counter()
+    if args.jobs > 1:
+        context = multiprocessing.get_context("spawn")
+        with concurrent.futures.ProcessPoolExecutor(args.jobs, mp_context=context) as pool:
+            outputs = list(pool.map(execute, *zip(*jobs)))
+    else:
+        outputs = [execute(*job) for job in jobs]
+    records = [o[0] for o in outputs]
+    arrays = {r.name: o[1] for r, o in zip(runs, outputs)}
+    by_name = {rec["run"]: rec for rec in records}
+    for r, rec in zip(runs, records):
+        if rec["symplecticity_defect"] is None and r.n == 3:
+            rec["symplecticity_defect"] = by_name[first_of_key[key(r)]]["symplecticity_defect"]
+    for fig, title in FIGURE_TITLES.items():
+        columns = {r.coordinates: arrays[r.name] for r in paper_runs(args.time_scale) if r.figure == fig}
+        draw_figure(args.out / f"{fig}.png", title, columns)
+
+    total_s = time.perf_counter() - start
+    meta = {
+        "seed": args.seed,
+        "time_scale": args.time_scale,
+        "jax": jax.__version__,
+        "platform": platform.platform(),
+        "cpu_count": os.cpu_count(),
+        "jobs": args.jobs,
+        "total_time_s": total_s,
+        "runs": records,
+    }
+    (args.out / "results.json").write_text(json.dumps(meta, indent=2))
+    np.savez_compressed(args.out / "trajectories.npz", **{f"{run}/{k}": v for run, d in arrays.items() for k, v in d.items()}, seed=args.seed)
+    _print_table(records)
+    print(f"{len(records)} runs in {total_s:.1f} s ({args.jobs} worker processes); files in {args.out}/")
+    return records
+
+
+def _print_table(records):
+    header = f"{'run':28s} {'T':>6s} {'max|ΔH|':>9s} {'|Π| drift':>9s} {'m drift':>9s} {'orth':>9s} {'sympl':>9s} {'iters':>7s} {'run s':>6s}"
+    print(header)
+    print("-" * len(header))
+    for r in records:
+        sym = "—" if r["symplecticity_defect"] is None else f"{r['symplecticity_defect']:.1e}"
+        print(
+            f"{r['run']:28s} {r['T']:6.0f} {r['max_abs_energy_error']:9.1e} {r['max_body_momentum_norm_drift']:9.1e} "
+            f"{r['max_spatial_momentum_drift']:9.1e} {r['max_orthogonality_defect']:9.1e} {sym:>9s} "
+            f"{r['implicit_iterations_total']:7d} {r['wall_time_s']:6.2f}"
+        )
+
+
+if __name__ == "__main__":
+    main()

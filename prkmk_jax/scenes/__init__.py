@@ -1,0 +1,13 @@
+from .rigid_body import (
+    PAPER_INERTIA as PAPER_INERTIA,
+    PAPER_MOMENTUM as PAPER_MOMENTUM,
+    PAPER_SEED as PAPER_SEED,
+    angular_velocity as angular_velocity,
+    attitude_and_momentum as attitude_and_momentum,
+    from_attitude_and_momentum as from_attitude_and_momentum,
+    random_rotation as random_rotation,
+    skew_arcsinh as skew_arcsinh,
+    symmetric_initial_state as symmetric_initial_state,
+    symmetric_rigid_body as symmetric_rigid_body,
+    unreduced_rigid_body as unreduced_rigid_body,
+)

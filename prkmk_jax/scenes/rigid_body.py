@@ -1,0 +1,136 @@
+"""Rigid-body scenes of the paper's §3 and §5.
+
+* The symmetric rigid body (3.3) on SO(n)×SO(n) (`Cartesian`), body form:
+  Q' = QΩ, P' = PΩ, M = QᵀP − PᵀQ, Ω = I⁻¹M.
+* The unreduced rigid body (§3.2) on T*SO(n), body form: g' = gΩ, Π' = [Π, Ω]
+  (Π × Ω for n = 3), on `Cotangent`/left `Semidirect` (where it is the
+  generator (Ω, 0)) or on `DirectProduct` (generator (Ω, [Π, Ω])).
+
+The inertia is passed as `args` (differentiable, no recompiles): for SO(3) a
+3-vector I acting on the vector form of M; for SO(n) a vector J of n
+"mass" entries with M = JΩ + ΩJ, i.e. Ω_ij = M_ij/(J_i + J_j) (for n = 3 this
+is I_k = J_i + J_j).
+"""
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ..bundles import AbstractSemidirect, BundleElement, Cartesian, DirectProduct
+from ..groups import SO3, SOn, hat, vee
+
+PAPER_INERTIA = np.array([7 / 8, 5 / 8, 1 / 4])
+"""Eq. (5.2), acting on the vector form of M."""
+PAPER_MOMENTUM = np.array([0.250, 0.625, 0.875])
+"""Eq. (5.1), M₀ (and Π₀ in §5.2)."""
+PAPER_SEED = 2003
+"""Seed of the random initial attitudes (the paper does not give one)."""
+
+
+def random_rotation(seed: int, n: int = 3) -> np.ndarray:
+    """A Haar-random rotation: QR of a Gaussian matrix from
+    `numpy.random.default_rng(seed)`, signs fixed so R has det +1."""
+    a = np.random.default_rng(seed).normal(size=(n, n))
+    q, r = np.linalg.qr(a)
+    q = q * np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] = -q[:, 0]
+    return q
+
+
+def skew_arcsinh(m: Float[Array, "n n"]) -> Float[Array, "n n"]:
+    """The skew S with sinh(S) = m for skew m, i.e. exp(S) − exp(−S) = 2m.
+
+    On each invariant plane S acts as a rotation by θ and sinh(S) as
+    sin(θ)·J, so θ = arcsin(μ) for the eigen-angle μ of m: an *arcsin*, defined
+    when the spectral norm of m is ≤ 1 (§5.1 uses m = M₀/2, norm 0.552).
+    """
+    m = np.asarray(m, dtype=np.float64)
+    if np.abs(m + m.T).max() > 1e-14 * max(1.0, np.abs(m).max()):
+        raise ValueError("skew_arcsinh needs a skew-symmetric matrix.")
+    # i·m is Hermitian with real eigenvalues μ; m = −i W diag(μ) Wᴴ.
+    mu, w = np.linalg.eigh(1j * m)
+    if np.abs(mu).max() >= 1:
+        raise ValueError(f"sinh(S) = m has no real skew solution: spectral norm of m is {np.abs(mu).max():.3f} ≥ 1.")
+    s = -1j * (w * np.arcsin(mu)) @ w.conj().T
+    return np.real(s)
+
+
+def symmetric_initial_state(q0: np.ndarray, m0: np.ndarray) -> BundleElement:
+    """(Q₀, P₀) with P₀ = Q₀ exp(sinh⁻¹(M₀/2)), so Q₀ᵀP₀ − P₀ᵀQ₀ = M₀ (§5.1).
+
+    `m0` is a 3-vector (SO(3), vector form) or a skew (n, n) matrix (SO(n))."""
+    m0 = np.asarray(m0, dtype=np.float64)
+    if m0.ndim == 1:
+        s = skew_arcsinh(np.asarray(hat(jnp.asarray(m0 / 2))))
+        p0 = q0 @ np.asarray(SO3.exp(jnp.asarray(np.array([s[2, 1], s[0, 2], s[1, 0]]))).matrix)
+        return BundleElement(SO3(jnp.asarray(q0)), SO3(jnp.asarray(p0)))
+    s = skew_arcsinh(m0 / 2)
+    p0 = q0 @ np.asarray(SOn.exp(jnp.asarray(s)).matrix)
+    return BundleElement(SOn(jnp.asarray(q0)), SOn(jnp.asarray(p0)))
+
+
+def angular_velocity(momentum: Array, inertia: Array) -> Array:
+    """Ω = I⁻¹M: M/I (vector form, SO(3)) or M_ij/(J_i + J_j) (SO(n) matrices)."""
+    if momentum.ndim >= 2 and momentum.shape[-1] == momentum.shape[-2] == inertia.shape[-1]:
+        return momentum / (inertia[..., :, None] + inertia[..., None, :])
+    return momentum / inertia
+
+
+def _commutator_or_cross(a, b):
+    if a.ndim >= 2:
+        return a @ b - b @ a
+    return jnp.cross(a, b)
+
+
+def symmetric_rigid_body(t, y: BundleElement, inertia) -> tuple[Array, Array]:
+    """Body-form generator (Ω, Ω) of (3.3) on `Cartesian(SO3)` or `Cartesian(SOn)`."""
+    q, p = y.base.matrix, y.fiber.matrix
+    m = q.T @ p - p.T @ q
+    if isinstance(y.base, SO3):
+        m = vee(m)
+    omega = angular_velocity(m, inertia)
+    return omega, omega
+
+
+def unreduced_rigid_body(bundle):
+    """Body-form generator of g' = gΩ, Π' = [Π, Ω] on `bundle`: (Ω, 0) on the
+    left semidirect/cotangent bundle (the product supplies Ad*), (Ω, [Π, Ω])
+    on the direct product."""
+    if isinstance(bundle, AbstractSemidirect):
+        if bundle.trivialization != "left":
+            raise ValueError("the unreduced rigid body is written for the left-trivialised (body) bundle.")
+
+        def field(t, y, inertia):
+            omega = angular_velocity(y.fiber, inertia)
+            return omega, jnp.zeros_like(omega)
+
+    elif isinstance(bundle, DirectProduct):
+
+        def field(t, y, inertia):
+            omega = angular_velocity(y.fiber, inertia)
+            return omega, _commutator_or_cross(y.fiber, omega)
+
+    else:
+        raise TypeError(f"the unreduced rigid body lives on Cotangent, Semidirect(left) or DirectProduct, not {type(bundle).__name__}.")
+    return field
+
+
+def attitude_and_momentum(bundle, y: BundleElement) -> tuple[Array, Array]:
+    """(g, Π) of a state (or trajectory): for `Cartesian`, g = Q and
+    Π = QᵀP − PᵀQ (vector form on SO(3)); otherwise the base and the fiber."""
+    if isinstance(bundle, Cartesian):
+        q, p = y.base.matrix, y.fiber.matrix
+        m = jnp.swapaxes(q, -1, -2) @ p - jnp.swapaxes(p, -1, -2) @ q
+        return q, (vee(m) if isinstance(y.base, SO3) else m)
+    return y.base.matrix, y.fiber
+
+
+def from_attitude_and_momentum(bundle, g: Array, pi: Array) -> BundleElement:
+    """Inverse of `attitude_and_momentum` on SO(3) (P = g exp(sinh⁻¹(Π/2)) for `Cartesian`)."""
+    if isinstance(bundle, Cartesian):
+        # Vector form of sinh⁻¹ of hat(Π/2): direction Π, angle arcsin(|Π|/2).
+        norm = jnp.linalg.norm(pi)
+        s = jnp.arcsin(norm / 2) / norm * pi
+        return BundleElement(SO3(g), SO3(g @ SO3.exp(s).matrix))
+    return BundleElement(SO3(g), pi)

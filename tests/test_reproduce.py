@@ -1,0 +1,180 @@
+"""The paper's §5 experiments: invariants, the symplecticity diagnostic, and
+the reproduce command."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import prkmk_jax as pk
+from prkmk_jax import diagnostics
+from prkmk_jax import reproduce as rp
+from prkmk_jax.scenes import rigid_body as rb
+
+RUNS = {r.name: r for r in rp.paper_runs()}
+
+# One xdist worker runs this module's tests, so the §5 runs execute once.
+pytestmark = pytest.mark.xdist_group("section5")
+
+
+@pytest.fixture(scope="module")
+def results():
+    """Execute the §5 runs once (without the compile-heavy step Jacobian)."""
+    names = [n for n in RUNS if not n.startswith("sym_so4")]
+    return {n: rp.execute(RUNS[n], rb.PAPER_SEED, symplecticity=False) for n in names}
+
+
+def test_initial_momentum_of_the_symmetric_body():
+    y0 = rb.symmetric_initial_state(rb.random_rotation(rb.PAPER_SEED), rb.PAPER_MOMENTUM)
+    q, p = np.asarray(y0.base.matrix), np.asarray(y0.fiber.matrix)
+    np.testing.assert_allclose(q.T @ p - p.T @ q, np.asarray(pk.hat(jnp.asarray(rb.PAPER_MOMENTUM))), rtol=0, atol=1e-14)
+    # so(4): the skew sinh⁻¹ is an arcsin of the eigen-angles
+    m = (lambda a: 0.4 * (a - a.T))(np.random.default_rng(0).normal(size=(4, 4)))
+    y4 = rb.symmetric_initial_state(rb.random_rotation(1, 4), m)
+    q, p = np.asarray(y4.base.matrix), np.asarray(y4.fiber.matrix)
+    np.testing.assert_allclose(q.T @ p - p.T @ q, m, rtol=0, atol=1e-14)
+
+
+def test_skew_arcsinh_refuses_large_momenta():
+    with pytest.raises(ValueError, match="no real skew solution"):
+        rb.skew_arcsinh(np.asarray(pk.hat(jnp.array([0.0, 0.0, 2.5]))))
+    with pytest.raises(ValueError, match="skew-symmetric"):
+        rb.skew_arcsinh(np.eye(3))
+
+
+@pytest.mark.parametrize("name", ["sym_SE_exp", "sym_SE_cayley", "sym_SV_exp", "sym_SV_cayley"])
+def test_section_5_1_conservation(results, name):
+    record, arrays = results[name]
+    assert record["result"] == "successful"
+    assert record["max_body_momentum_norm_drift"] <= 1e-12
+    assert record["max_spatial_momentum_drift"] <= 1e-12
+    for key in ("Q", "P"):
+        m = arrays[key]
+        assert np.abs(np.einsum("tji,tjk->tik", m, m) - np.eye(3)).max() <= 1e-13
+
+
+@pytest.mark.parametrize("name", ["sym_SE_exp", "sym_SE_cayley", "sym_SE_exp_T1000"])
+def test_section_5_1_symplectic_euler_energy_stays_in_a_band(results, name):
+    record, _ = results[name]
+    assert record["energy_error_last_quarter"] <= 1.5 * record["energy_error_first_quarter"], record
+    assert record["max_abs_energy_error"] < 0.05
+
+
+@pytest.mark.parametrize("name", ["unreduced_SE_exp", "unreduced_SE_cayley", "unreduced_SV_exp", "unreduced_SV_cayley"])
+def test_section_5_2_momentum_conserved_on_the_semidirect_bundle(results, name):
+    record, _ = results[name]
+    assert record["max_body_momentum_norm_drift"] <= 1e-12
+    assert record["max_spatial_momentum_drift"] <= 1e-12
+    assert record["max_orthogonality_defect"] <= 1e-13
+
+
+def test_section_5_2_energy_behaviour(results):
+    """Symplectic Euler drifts (paper Fig. 5.3: towards a pole); the §5
+    Störmer–Verlet pair conserves H: with η = 0 it sets u = h(Ωₙ + Ωₙ₊₁)/2 and
+    Πₙ₊₁ = exp(−û)Πₙ, a rotation about u, so ΔH = (Πₙ₊₁ − Πₙ)·u/h = 0."""
+    for coords in ("exp", "cayley"):
+        se = results[f"unreduced_SE_{coords}"][0]
+        assert se["final_energy_error"] < -0.5  # loses over a quarter of H₀ = 1.88 by T = 50
+        sv = results[f"unreduced_SV_{coords}"][0]
+        assert sv["max_abs_energy_error"] < 1e-11
+
+
+def test_direct_product_loses_the_casimir(results):
+    """On G×g the same explicit-in-Π symplectic Euler does not keep |Π|."""
+    assert results["unreduced_direct_SE_exp"][0]["max_body_momentum_norm_drift"] > 0.1
+    assert results["unreduced_SE_exp"][0]["max_body_momentum_norm_drift"] <= 1e-12
+
+
+# --- the symplecticity diagnostic --------------------------------------------------
+def _pendulum(t, y, args):
+    return y.fiber.value, -jnp.sin(y.base.value)
+
+
+def _classical_step_map(tab):
+    solver = pk.PRKMK(pk.Cartesian(pk.VectorSpace), pk.Exp(), tab)
+
+    def step(z):
+        y = pk.BundleElement(pk.VectorSpace(z[:1]), pk.VectorSpace(z[1:]))
+        y1 = solver.step(_pendulum, 0.0, y, 0.3)[0]
+        return jnp.concatenate([y1.base.value, y1.fiber.value])
+
+    return step
+
+
+@pytest.mark.parametrize("tab", pk.tableaus.ALL_TABLEAUS, ids=lambda t: t.name)
+def test_symplecticity_defect_vanishes_for_symplectic_prk(tab):
+    defect = diagnostics.canonical_symplecticity_defect(_classical_step_map(tab), jnp.array([1.1, -0.4]))
+    assert defect < 1e-13
+
+
+def test_symplecticity_defect_detects_non_symplectic_rk():
+    a = np.array([[0, 0], [0.5, 0]])
+    midpoint = pk.PartitionedTableau("explicit midpoint", a, np.array([0, 1.0]), np.array([0, 0.5]), a, np.array([0, 1.0]), np.array([0, 0.5]), 2)
+    assert diagnostics.canonical_symplecticity_defect(_classical_step_map(midpoint), jnp.array([1.1, -0.4])) > 1e-3
+
+
+def test_cotangent_chart_sees_the_exact_flow_as_symplectic():
+    """In the canonical chart of T*SO(3) a near-exact flow map (20 classical
+    RK4 steps on the embedding ℝ⁹×ℝ³, independent of the library's
+    integrators) has a tiny defect and explicit Euler does not."""
+    inertia = jnp.asarray(rb.PAPER_INERTIA)
+
+    def rhs(g, pi):
+        omega = pi / inertia
+        return g @ pk.hat(omega), jnp.cross(pi, omega)
+
+    def rk4(_, state, h=0.1 / 20):
+        g, pi = state
+        k1 = rhs(g, pi)
+        k2 = rhs(g + h / 2 * k1[0], pi + h / 2 * k1[1])
+        k3 = rhs(g + h / 2 * k2[0], pi + h / 2 * k2[1])
+        k4 = rhs(g + h * k3[0], pi + h * k3[1])
+        return g + h / 6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0]), pi + h / 6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
+
+    def flow(g, pi):
+        return jax.lax.fori_loop(0, 20, rk4, (g, pi))
+
+    def euler(g, pi):
+        omega = pi / inertia
+        return g @ pk.SO3.exp(0.1 * omega).matrix, pi + 0.1 * jnp.cross(pi, omega)
+
+    g0, pi0 = jnp.asarray(rb.random_rotation(1)), jnp.asarray(rb.PAPER_MOMENTUM)
+    assert float(jax.jit(lambda g, p: diagnostics.symplecticity_defect(flow, g, p))(g0, pi0)) < 1e-8
+    assert float(jax.jit(lambda g, p: diagnostics.symplecticity_defect(euler, g, p))(g0, pi0)) > 1e-2
+
+
+def test_canonical_chart_round_trip():
+    g0 = jnp.asarray(rb.random_rotation(3))
+    g = g0 @ pk.SO3.exp(jnp.array([0.2, -0.1, 0.3])).matrix
+    pi = jnp.array([0.3, 0.1, -0.7])
+    q, p = diagnostics.to_canonical(g0, g, pi)
+    g1, pi1 = diagnostics.from_canonical(g0, q, p)
+    np.testing.assert_allclose(g1, g, atol=1e-14)
+    np.testing.assert_allclose(pi1, pi, atol=1e-14)
+
+
+# --- the command -------------------------------------------------------------------
+RECORD_FIELDS = {
+    "run", "scene", "representation", "n", "coordinates", "tableau", "h", "T", "num_steps", "figure",
+    "max_abs_energy_error", "energy_error_first_quarter", "energy_error_last_quarter", "final_energy_error",
+    "max_body_momentum_norm_drift", "max_spatial_momentum_drift", "max_orthogonality_defect",
+    "symplecticity_defect", "implicit_iterations_total", "implicit_iterations_max_per_step",
+    "compile_time_s", "wall_time_s", "result",
+}
+
+
+def test_reproduce_command_smoke(tmp_path, capsys):
+    rp.main(["--out", str(tmp_path), "--time-scale", "0.02", "--jobs", "1"])
+    for i in range(1, 5):
+        assert (tmp_path / f"fig5_{i}.png").stat().st_size > 10_000
+    meta = json.loads((tmp_path / "results.json").read_text())
+    assert len(meta["runs"]) == len(rp.paper_runs())
+    for record in meta["runs"]:
+        assert set(record) == RECORD_FIELDS
+        assert record["result"] == "successful"
+        assert (record["symplecticity_defect"] is None) == (record["n"] != 3)
+    data = np.load(tmp_path / "trajectories.npz")
+    assert {"sym_SE_exp/Q", "sym_SE_exp/P", "sym_SE_exp/t", "unreduced_SV_cayley/g", "unreduced_SV_cayley/Pi"} <= set(data.files)
+    assert "max|ΔH|" in capsys.readouterr().out
