@@ -19,6 +19,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 
 from . import diagnostics
 from .bundles import AbstractBundle, Cartesian, Cotangent, DirectProduct
@@ -102,11 +103,20 @@ def _step_map(solver, field, bundle, h, inertia):
     return step
 
 
+def solver_of(run: Run) -> PRKMK:
+    """The symmetric body on SO(3)² at h = 0.1 has h·Lip ≈ 0.8: fixed-point
+    iteration needs ~94 iterations a step there (measured), Newton 4. The
+    other runs converge in ≤ 24 fixed-point iterations, cheaper than Newton's
+    dense Jacobians (on SO(4)² Newton took 5.2 s against 0.7 s)."""
+    root_finder = optx.Newton(rtol=1e-12, atol=1e-12) if (run.scene == "symmetric" and run.n == 3) else None
+    return PRKMK(run.bundle, COORDINATES[run.coordinates], run.tableau, form="body", root_finder=root_finder)
+
+
 def execute(run: Run, seed: int, symplecticity: bool = True) -> tuple[dict, dict]:
     """Integrate one run; returns (its results record, its arrays).
     `symplecticity=False` skips the (compile-heavy) step-map Jacobian."""
     jax.config.update("jax_enable_x64", True)
-    solver = PRKMK(run.bundle, COORDINATES[run.coordinates], run.tableau, form="body")
+    solver = solver_of(run)
     field = field_of(run)
     y0, inertia = initial_data(run, seed)
     simulate = jax.jit(lambda y0, inertia: integrate(solver, field, y0, 0.0, run.h, run.num_steps, inertia, save_every=run.save_every))
@@ -204,7 +214,7 @@ def draw_figure(path: Path, title: str, columns: dict[str, dict]) -> None:
     plt.close(fig)
 
 
-def main(argv=None) -> list[dict]:
+def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description="Reproduce the numerical experiments of Engø (2003), §5.")
     parser.add_argument("--out", type=Path, default=Path("figures"), help="output directory")
     parser.add_argument("--seed", type=int, default=rb.PAPER_SEED, help="seed of the random initial attitudes")
@@ -254,7 +264,6 @@ def main(argv=None) -> list[dict]:
     np.savez_compressed(args.out / "trajectories.npz", **{f"{run}/{k}": v for run, d in arrays.items() for k, v in d.items()}, seed=args.seed)
     _print_table(records)
     print(f"{len(records)} runs in {total_s:.1f} s ({args.jobs} worker processes); files in {args.out}/")
-    return records
 
 
 def _print_table(records):

@@ -80,7 +80,10 @@ class PRKMK(eqx.Module):
       default max(1e-12, 50·eps) of the state's dtype.
     - `max_iterations`: iteration cap of each implicit block.
     - `root_finder`: an optimistix fixed-point solver or root finder (e.g.
-      `optx.Newton(rtol, atol)`); default fixed-point iteration.
+      `optx.Newton(rtol, atol)`); default fixed-point iteration, which
+      converges when h times the field's Lipschitz constant is below 1 and
+      slows down as it approaches 1 (symmetric rigid body at h = 0.1: ~94
+      iterations a step, Newton: 4).
     """
 
     bundle: AbstractBundle
