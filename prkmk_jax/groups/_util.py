@@ -2,6 +2,7 @@
 
 from collections.abc import Callable, Sequence
 
+import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array
 
@@ -31,3 +32,12 @@ def orthogonality_defect(matrix: Array) -> Array:
     n = matrix.shape[-1]
     gram = jnp.swapaxes(matrix, -1, -2) @ matrix
     return jnp.max(jnp.abs(gram - jnp.eye(n, dtype=matrix.dtype)), axis=(-2, -1))
+
+
+def checked_rotation(matrix: Array, group_name: str) -> Array:
+    """`matrix`, with run-time errors (`eqx.error_if`) unless it is finite,
+    orthogonal to sqrt(eps) and of determinant +1."""
+    tol = jnp.sqrt(jnp.finfo(matrix.dtype).eps)
+    matrix = eqx.error_if(matrix, ~jnp.all(jnp.isfinite(matrix)), f"{group_name} element is not finite (NaN or inf).")
+    matrix = eqx.error_if(matrix, jnp.any(orthogonality_defect(matrix) > tol), f"{group_name} element is not orthogonal: max|RᵀR − I| exceeds sqrt(eps).")
+    return eqx.error_if(matrix, jnp.any(jnp.linalg.det(matrix) < 0), f"{group_name} element has det = −1: a reflection, not a rotation.")

@@ -2,12 +2,11 @@
 
 from typing import ClassVar, Self
 
-import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .base import AbstractQuadraticGroup
-from ._util import orthogonality_defect, taylor_or_exact
+from ._util import checked_rotation, taylor_or_exact
 
 # Below this θ² the Taylor branches are used; the exact forms that cancel
 # (θ − sin θ)/θ³ and the dexp⁻¹ coefficient lose ~eps/θ² relative accuracy.
@@ -130,12 +129,7 @@ class SO3(AbstractQuadraticGroup):
         return jnp.zeros(self.matrix.shape[:-1], self.matrix.dtype)
 
     def check(self) -> Self:
-        dtype = self.matrix.dtype
-        tol = jnp.sqrt(jnp.finfo(dtype).eps)
-        matrix = eqx.error_if(self.matrix, ~jnp.all(jnp.isfinite(self.matrix)), "SO3 element is not finite (NaN or inf).")
-        matrix = eqx.error_if(matrix, jnp.any(orthogonality_defect(matrix) > tol), "SO3 element is not orthogonal: max|RᵀR − I| exceeds sqrt(eps).")
-        matrix = eqx.error_if(matrix, jnp.any(jnp.linalg.det(matrix) < 0), "SO3 element has det = −1: a reflection, not a rotation.")
-        return SO3(matrix)
+        return SO3(checked_rotation(self.matrix, "SO3"))
 
     # --- algebra ---------------------------------------------------------------
     @classmethod

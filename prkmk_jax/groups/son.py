@@ -2,7 +2,6 @@
 
 from typing import ClassVar, Self
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
@@ -10,7 +9,7 @@ from jaxtyping import Array, Float
 
 from .base import AbstractQuadraticGroup
 from ..series import dexp_inv_series
-from ._util import orthogonality_defect
+from ._util import checked_rotation
 
 EXACT_SERIES_TERMS = 40
 """Terms of the Bernoulli series used as the 'exact' dexp⁻¹ on so(n).
@@ -89,11 +88,7 @@ class SOn(AbstractQuadraticGroup):
         return jnp.zeros_like(self.matrix)
 
     def check(self) -> Self:
-        tol = jnp.sqrt(jnp.finfo(self.matrix.dtype).eps)
-        matrix = eqx.error_if(self.matrix, ~jnp.all(jnp.isfinite(self.matrix)), "SOn element is not finite (NaN or inf).")
-        matrix = eqx.error_if(matrix, jnp.any(orthogonality_defect(matrix) > tol), "SOn element is not orthogonal: max|RᵀR − I| exceeds sqrt(eps).")
-        matrix = eqx.error_if(matrix, jnp.any(jnp.linalg.det(matrix) < 0), "SOn element has det = −1: a reflection, not a rotation.")
-        return SOn(matrix)
+        return SOn(checked_rotation(self.matrix, "SOn"))
 
     @classmethod
     def bracket(cls, u, v):
