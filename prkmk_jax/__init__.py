@@ -24,3 +24,5 @@ from .tableaus import (
 )
 
 __version__ = "0.1.0"
+from .interpolation import OnGroupInterpolation as OnGroupInterpolation
+from .solver import PRKMKSolver as PRKMKSolver, PRKMKTerm as PRKMKTerm

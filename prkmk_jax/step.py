@@ -117,15 +117,26 @@ class PRKMK(eqx.Module):
         return self.tableau.order
 
     # --- pieces of Algorithm 4.2 ----------------------------------------------------
-    def _act(self, f_of_u: BundleElement, y: BundleElement) -> BundleElement:
+    def apply_increment(self, U: AlgebraPair, y: BundleElement) -> BundleElement:
+        """f(U)·y (space form) or y·f(U) (body form)."""
+        f_of_u = self.coordinates.map(self.bundle, U)
         if self.form == "space":
             return self.bundle.multiply(f_of_u, y)
         return self.bundle.multiply(y, f_of_u)
 
-    def _slope(self, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
+    def slope(self, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
+        """U' for the generator X at the point reached by the increment U:
+        df⁻¹_U(X) (space form) or df⁻¹_{−U}(X) (body form), truncated as
+        the coordinates say."""
         if self.form == "body":
             U = _tree_scale(-1.0, U)
         return self.coordinates.inverse_differential(self.bundle, U, X, self.order)
+
+    def generator(self, vector_field: VectorField, t, y: BundleElement, args) -> AlgebraPair:
+        """(ξ, η) = vector_field(t, y, args) in the state's dtype, whatever
+        precision the user's field returns."""
+        zeros = self.bundle.algebra_zeros(y)
+        return tuple(jnp.asarray(x, z.dtype) for x, z in zip(vector_field(t, y, args), zeros))
 
     def check_vector_field(self, vector_field: VectorField, t, y: BundleElement, args) -> None:
         """Trace-time check that `vector_field(t, y, args)` returns a pair
@@ -148,6 +159,14 @@ class PRKMK(eqx.Module):
     ) -> tuple[BundleElement, RESULTS, Array]:
         """One step from (t, y) to t + dt. Returns (y_next, result, iterations),
         `iterations` being the number of implicit iterations taken."""
+        y_next, _, result, iterations = self.step_with_increment(vector_field, t, y, dt, args)
+        return y_next, result, iterations
+
+    def step_with_increment(
+        self, vector_field: VectorField, t: Array, y: BundleElement, dt: Array, args: PyTree = None
+    ) -> tuple[BundleElement, AlgebraPair, RESULTS, Array]:
+        """As `step`, also returning the algebra increment Uₙ₊₁ of the step
+        (yₙ₊₁ = `apply_increment(Uₙ₊₁, yₙ)`)."""
         self.check_vector_field(vector_field, t, y, args)
         tab = self.tableau
         dtype = jnp.result_type(*jax.tree.leaves(y))
@@ -159,8 +178,7 @@ class PRKMK(eqx.Module):
         s = tab.num_stages
 
         def field(tt, Y):
-            # (ξ, η) in the state's dtype, whatever precision the user's field returns.
-            return tuple(jnp.asarray(x, z.dtype) for x, z in zip(vector_field(tt, Y, args), zeros))
+            return self.generator(vector_field, tt, Y, args)
         slopes = jax.tree.map(lambda z: jnp.zeros((s,) + z.shape, z.dtype), zeros)
 
         def stage_slopes(idx, slopes):
@@ -170,8 +188,7 @@ class PRKMK(eqx.Module):
             v = dt * jnp.tensordot(a2[idx], slopes[1], axes=1)
 
             def one(uu, vv, tt):
-                Y = self._act(self.coordinates.map(self.bundle, (uu, vv)), y)
-                return self._slope((uu, vv), field(tt, Y))
+                return self.slope((uu, vv), field(tt, self.apply_increment((uu, vv), y)))
 
             return jax.vmap(one)(u, v, t + c[idx] * dt)
 
@@ -198,10 +215,10 @@ class PRKMK(eqx.Module):
 
         b1, b2 = jnp.asarray(tab.b_first, dtype), jnp.asarray(tab.b_second, dtype)
         u_next = (dt * jnp.tensordot(b1, slopes[0], axes=1), dt * jnp.tensordot(b2, slopes[1], axes=1))
-        y_next = self._act(self.coordinates.map(self.bundle, u_next), y)
+        y_next = self.apply_increment(u_next, y)
         finite = jnp.all(jnp.array([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(y_next)]))
         result = RESULTS.where((result == RESULTS.successful) & ~finite, RESULTS.nonfinite, result)
-        return y_next, result, iterations
+        return y_next, u_next, result, iterations
 
     def _solve(self, fn, guess, dtype):
         eps = float(jnp.finfo(dtype).eps)

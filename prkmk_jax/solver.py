@@ -1,0 +1,114 @@
+"""PRKMK as a diffrax solver: `diffrax.diffeqsolve(PRKMKTerm(f), PRKMKSolver(method), ...)`.
+
+The state is a `BundleElement` and the vector field returns the generator
+(ξ, η), an algebra pair of another shape than the state, which diffrax's
+`ODETerm` (dy/dt) cannot express; `PRKMKTerm` carries it instead.
+"""
+
+from collections.abc import Callable
+from typing import ClassVar
+
+import diffrax
+import jax
+from diffrax._term import WrapTerm  # how diffeqsolve hands terms to solvers (time direction)
+
+from .bundles import AlgebraPair, BundleElement
+from .interpolation import OnGroupInterpolation
+from .step import PRKMK, RESULTS
+
+
+class PRKMKTerm(diffrax.AbstractTerm):
+    """A vector field `f(t, y, args) -> (ξ, η)` on a bundle group, the
+    generator of y' = (ξ, η)·y or y' = y·(ξ, η) (the solver's `form`)."""
+
+    vector_field: Callable[..., AlgebraPair]
+
+    def vf(self, t, y, args):
+        if not isinstance(y, BundleElement):
+            raise TypeError(f"a PRKMKTerm's state is a BundleElement(base, fiber), got {type(y).__name__}.")
+        return self.vector_field(t, y, args)
+
+    def contr(self, t0, t1, **kwargs):
+        return t1 - t0
+
+    def prod(self, vf, control):
+        return jax.tree.map(lambda v: control * v, vf)
+
+    def vf_prod(self, t, y, args, control):
+        # A Euclidean solver (or BacksolveAdjoint's adjoint term) would read
+        # f·dt as an increment of y; for a generator that is meaningless.
+        raise NotImplementedError(_EUCLIDEAN_USE)
+
+
+_EUCLIDEAN_USE = (
+    "PRKMKTerm's vector field is a Lie-algebra generator (ξ, η), not dy/dt, so it cannot be used by a Euclidean "
+    "solver or by BacksolveAdjoint, which solves the continuous adjoint equations as if the state were Euclidean. "
+    "Use PRKMKSolver with RecursiveCheckpointAdjoint (the default), DirectAdjoint or ForwardMode."
+)
+
+
+def _unwrap(terms) -> tuple["PRKMKTerm", object]:
+    """The user's PRKMKTerm and the time direction (±1) diffeqsolve wrapped it with."""
+    direction = 1
+    while isinstance(terms, WrapTerm):
+        direction = direction * terms.direction
+        terms = terms.term
+    _check_term(terms)
+    return terms, direction
+
+
+def _check_term(terms):
+    if isinstance(terms, PRKMKTerm):
+        return
+    raise TypeError(
+        f"PRKMKSolver needs terms=PRKMKTerm(f) with f(t, y, args) -> (ξ, η), got {type(terms).__name__}. "
+        "diffrax.ODETerm reads f as dy/dt, which for a group-valued y is not an element of a vector space."
+    )
+
+
+class PRKMKSolver(diffrax.AbstractSolver):
+    """Runs a `PRKMK` method inside `diffrax.diffeqsolve`.
+
+    Fixed steps (`ConstantStepSize`, `StepTo`) give the same values as
+    `integrate`; dense output (`SaveAt(ts=...)`, `SaveAt(dense=True)`,
+    `Solution.evaluate`) is `OnGroupInterpolation`, of order min(p, 3).
+    Gradients: `RecursiveCheckpointAdjoint` (default), `DirectAdjoint`,
+    `ForwardMode`. `BacksolveAdjoint` is refused — its backward solve hands
+    the solver diffrax's `AdjointTerm`, which diffrax rejects as not a
+    `PRKMKTerm` (its continuous adjoint treats the state as Euclidean).
+    """
+
+    method: PRKMK
+    term_structure: ClassVar = PRKMKTerm
+    interpolation_cls: ClassVar = OnGroupInterpolation
+
+    def __check_init__(self):
+        if not isinstance(self.method, PRKMK):
+            raise TypeError(f"PRKMKSolver wraps a PRKMK method, got {type(self.method).__name__}.")
+
+    def order(self, terms):
+        return self.method.order
+
+    def init(self, terms, t0, t1, y0, args):
+        term, direction = _unwrap(terms)
+        self.method.bundle.check(y0)  # static type/shape errors
+        self.method.check_vector_field(term.vector_field, direction * t0, y0, args)
+        return None
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        del made_jump  # no information is carried between steps
+        term, direction = _unwrap(terms)
+        method, field = self.method, term.vector_field
+        # diffrax runs a backward solve in the clock −t; step in the user's clock.
+        s0, s1 = direction * t0, direction * t1
+        y1, increment, result, _ = method.step_with_increment(field, s0, y0, s1 - s0, args)
+        zero = method.bundle.algebra_zeros(y0)
+        # Slopes per unit of diffrax's clock, in which the interpolation runs.
+        slope0 = jax.tree.map(lambda x: direction * x, method.slope(zero, method.generator(field, s0, y0, args)))
+        slope1 = jax.tree.map(lambda x: direction * x, method.slope(increment, method.generator(field, s1, y1, args)))
+        dense_info = dict(y0=y0, increment=increment, slope0=slope0, slope1=slope1, method=method)
+        return y1, None, dense_info, solver_state, result
+
+    def func(self, terms, t0, y0, args):
+        term, direction = _unwrap(terms)
+        return term.vf(direction * t0, y0, args)

@@ -1,0 +1,167 @@
+"""PRKMK inside diffrax.diffeqsolve: equality with the scan integrator,
+on-group dense output and its order, adjoints, batches and errors."""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+import prkmk_jax as pk
+from helpers import INERTIA, initial_state, rigid_body_field, state_vector
+
+COTANGENT = pk.Cotangent(pk.SO3)
+FIELD = rigid_body_field(COTANGENT, "body")
+TERM = pk.PRKMKTerm(FIELD)
+
+
+def _method(tab=pk.stormer_verlet, **kw):
+    return pk.PRKMK(COTANGENT, pk.Exp(), tab, form="body", **kw)
+
+
+def _solve(method, t1, dt, y0, args=jnp.asarray(INERTIA), **kw):
+    return diffrax.diffeqsolve(TERM, pk.PRKMKSolver(method), 0.0, t1, dt, y0, args, **kw)
+
+
+@pytest.mark.parametrize("tab", pk.tableaus.ALL_TABLEAUS, ids=lambda t: t.name)
+def test_fixed_steps_equal_the_scan_integrator(tab):
+    y0 = initial_state(COTANGENT)
+    method = _method(tab)
+    sol = jax.jit(lambda y: _solve(method, 1.0, 0.02, y, saveat=diffrax.SaveAt(steps=True)))(y0)
+    traj = pk.integrate(method, FIELD, y0, 0.0, 0.02, 50, jnp.asarray(INERTIA))
+    n = int(sol.stats["num_steps"])
+    assert n == 50
+    np.testing.assert_allclose(sol.ys.fiber[:n], traj.ys.fiber[1:], rtol=0, atol=1e-13)
+    np.testing.assert_allclose(sol.ys.base.matrix[:n], traj.ys.base.matrix[1:], rtol=0, atol=1e-13)
+
+
+def test_non_autonomous_field_and_step_to():
+    def forced(t, y, args):
+        return y.fiber.value, -jnp.sin(y.base.value) + args * jnp.cos(2 * t)
+
+    method = pk.PRKMK(pk.Cartesian(pk.VectorSpace), pk.Exp(), pk.lobatto_iiia_iiib4)
+    y0 = pk.BundleElement(pk.VectorSpace(jnp.array([1.0])), pk.VectorSpace(jnp.array([0.2])))
+    ts = jnp.linspace(0.4, 1.4, 11)
+    sol = diffrax.diffeqsolve(pk.PRKMKTerm(forced), pk.PRKMKSolver(method), 0.4, 1.4, None, y0, 0.3, stepsize_controller=diffrax.StepTo(ts))
+    traj = pk.integrate(method, forced, y0, 0.4, 0.1, 10, 0.3)
+    np.testing.assert_allclose(sol.ys.base.value[-1], traj.ys.base.value[-1], atol=1e-13)
+
+
+def _dense_reference(y0, ts):
+    def rhs(t, z):
+        g, pi = z[:9].reshape(3, 3), z[9:]
+        om = pi / INERTIA
+        return np.concatenate([(g @ np.asarray(pk.hat(jnp.asarray(om)))).ravel(), np.cross(pi, om)])
+
+    out = solve_ivp(rhs, (0, float(ts[-1])), state_vector(COTANGENT, y0), method="DOP853", rtol=1e-13, atol=1e-13, t_eval=np.asarray(ts))
+    return out.y.T
+
+
+@pytest.mark.parametrize("tab,dense_order", [(pk.stormer_verlet, 2), (pk.lobatto_iiia_iiib4, 3)], ids=["SV", "lobatto"])
+def test_dense_output_is_on_the_group_and_converges(tab, dense_order):
+    y0 = initial_state(COTANGENT)
+    ts = jnp.array([0.37, 0.61, 0.83, 0.97])  # never step points below
+    ref = _dense_reference(y0, ts)
+    method = _method(tab)
+    run = jax.jit(lambda dt: _solve(method, 1.0, dt, y0, saveat=diffrax.SaveAt(ts=ts), max_steps=4096))
+    hs = np.array([0.1, 0.05, 0.025, 0.0125])
+    errs = []
+    for h in hs:
+        sol = run(h)
+        q = np.asarray(sol.ys.base.matrix)
+        assert np.abs(np.einsum("tji,tjk->tik", q, q) - np.eye(3)).max() <= 1e-13
+        errs.append(np.abs(state_vector(COTANGENT, sol.ys) - ref).max())
+    slope = np.polyfit(np.log(hs), np.log(errs), 1)[0]
+    assert slope >= dense_order - 0.15, (slope, errs)
+
+
+def test_dense_solution_evaluate_and_backward_solve():
+    y0 = initial_state(COTANGENT)
+    method = _method(pk.lobatto_iiia_iiib4)
+    sol = _solve(method, 1.0, 0.05, y0, saveat=diffrax.SaveAt(dense=True, t1=True))
+    mid = sol.evaluate(0.4321)
+    assert isinstance(mid, pk.BundleElement)
+    q = np.asarray(mid.base.matrix)
+    assert np.abs(q.T @ q - np.eye(3)).max() <= 1e-13
+    with pytest.raises(TypeError, match="BundleElement"):  # y(t1) − y(t0) has no meaning on a group
+        sol.evaluate(0.1, 0.2)
+    # backward in time from y(1) returns to y(0)
+    y1 = jax.tree.map(lambda a: a[-1], sol.ys)
+    back = diffrax.diffeqsolve(TERM, pk.PRKMKSolver(method), 1.0, 0.0, -0.05, y1, jnp.asarray(INERTIA), saveat=diffrax.SaveAt(ts=jnp.array([0.5, 0.0])))
+    np.testing.assert_allclose(back.ys.fiber[-1], y0.fiber, atol=1e-7)
+    np.testing.assert_allclose(back.ys.base.matrix[-1], y0.base.matrix, atol=1e-7)
+    np.testing.assert_allclose(back.ys.fiber[0], sol.evaluate(0.5).fiber, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "adjoint",
+    [diffrax.RecursiveCheckpointAdjoint(), diffrax.DirectAdjoint(), diffrax.ForwardMode()],
+    ids=["checkpoint", "direct", "forward"],
+)
+def test_gradients_match_finite_differences(adjoint):
+    y0 = initial_state(COTANGENT)
+    method = _method(pk.stormer_verlet)
+    target = jnp.array([0.3, -0.2, 0.9])
+
+    def loss(inertia):
+        sol = _solve(method, 1.0, 0.05, y0, inertia, saveat=diffrax.SaveAt(ts=jnp.array([0.33, 0.75, 1.0])), adjoint=adjoint, max_steps=32)
+        return jnp.sum((sol.ys.base.matrix[:, :, 2] - target) ** 2)
+
+    inertia = jnp.asarray(INERTIA)
+    grad = jax.jit(jax.jacfwd(loss) if isinstance(adjoint, diffrax.ForwardMode) else jax.grad(loss))(inertia)
+    loss_j = jax.jit(loss)
+    eps = 1e-5
+    fd = np.array([(loss_j(inertia + eps * e) - loss_j(inertia - eps * e)) / (2 * eps) for e in jnp.eye(3)])
+    np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-9 * np.abs(fd).max())
+
+
+def test_backsolve_adjoint_refused():
+    y0 = initial_state(COTANGENT)
+
+    def loss(inertia):
+        return jnp.sum(_solve(_method(), 0.2, 0.05, y0, inertia, adjoint=diffrax.BacksolveAdjoint(), max_steps=8).ys.fiber)
+
+    with pytest.raises(Exception, match="AdjointTerm"):
+        jax.grad(loss)(jnp.asarray(INERTIA))
+
+
+def test_vmap_over_initial_conditions():
+    ys = [initial_state(COTANGENT, seed=s) for s in range(3)]
+    batch = jax.tree.map(lambda *a: jnp.stack(a), *ys)
+    method = _method()
+    run = jax.jit(jax.vmap(lambda y: _solve(method, 0.5, 0.05, y).ys))
+    out = run(batch)
+    for i, y in enumerate(ys):
+        np.testing.assert_allclose(out.fiber[i], _solve(method, 0.5, 0.05, y).ys.fiber, atol=1e-14)
+
+
+def test_errors():
+    y0 = initial_state(COTANGENT)
+    method = _method()
+    with pytest.raises(Exception, match="PRKMKTerm"):
+        diffrax.diffeqsolve(diffrax.ODETerm(FIELD), pk.PRKMKSolver(method), 0.0, 1.0, 0.1, y0, jnp.asarray(INERTIA))
+    with pytest.raises(TypeError, match="SO3 fiber"):
+        diffrax.diffeqsolve(TERM, pk.PRKMKSolver(pk.PRKMK(pk.Cartesian(pk.SO3))), 0.0, 1.0, 0.1, y0, jnp.asarray(INERTIA))
+    with pytest.raises(TypeError, match="BundleElement"):
+        diffrax.diffeqsolve(TERM, pk.PRKMKSolver(method), 0.0, 1.0, 0.1, (y0.base, y0.fiber), jnp.asarray(INERTIA))
+    with pytest.raises(TypeError, match="wraps a PRKMK"):
+        pk.PRKMKSolver(diffrax.Tsit5())
+
+
+def test_failed_implicit_stage_is_a_result():
+    bundle = pk.Cartesian(pk.SO3)
+    method = pk.PRKMK(bundle, pk.Exp(), pk.symplectic_euler, form="body", max_iterations=20)
+    y0 = initial_state(bundle)
+    term = pk.PRKMKTerm(rigid_body_field(bundle, "body"))
+    sol = diffrax.diffeqsolve(term, pk.PRKMKSolver(method), 0.0, 3.0, 1.0, y0, jnp.asarray(INERTIA), throw=False)
+    assert sol.result == diffrax.RESULTS.nonlinear_max_steps_reached
+    with pytest.raises(Exception, match="nonlinear solver"):
+        diffrax.diffeqsolve(term, pk.PRKMKSolver(method), 0.0, 3.0, 1.0, y0, jnp.asarray(INERTIA))
+
+
+def test_progress_meter(capsys):
+    y0 = initial_state(COTANGENT)
+    sol = _solve(_method(), 1.0, 0.1, y0, progress_meter=diffrax.TextProgressMeter(minimum_increase=0.5))
+    assert sol.result == diffrax.RESULTS.successful
+    assert "100.00%" in capsys.readouterr().out
