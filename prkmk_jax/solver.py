@@ -9,7 +9,9 @@ from collections.abc import Callable
 from typing import ClassVar
 
 import diffrax
+import equinox as eqx
 import jax
+import jax.numpy as jnp
 from diffrax._term import WrapTerm  # how diffeqsolve hands terms to solvers (time direction)
 
 from .bundles import AlgebraPair, BundleElement
@@ -79,6 +81,13 @@ class PRKMKSolver(diffrax.AbstractSolver):
     """
 
     method: PRKMK
+    adaptive: bool = eqx.field(static=True, default=False)
+    """Estimate the local error by step doubling (one step of h against two of
+    h/2), for `PIDController`, and carry the two-half-step state on (as
+    `diffrax.HalfSolver` does). Costs three steps' work per step. Dense output
+    still interpolates the full step, so between steps it may differ from the
+    carried state by up to the local error estimate (it stays on the group).
+    Adaptive steps forfeit the exact symplecticity of a fixed-step method."""
     term_structure: ClassVar = PRKMKTerm
     interpolation_cls: ClassVar = OnGroupInterpolation
 
@@ -88,6 +97,10 @@ class PRKMKSolver(diffrax.AbstractSolver):
 
     def order(self, terms):
         return self.method.order
+
+    def error_order(self, terms):
+        # Both estimates have order p: their difference is O(h^{p+1}).
+        return self.method.order + 1 if self.adaptive else None
 
     def init(self, terms, t0, t1, y0, args):
         term, direction = _unwrap(terms)
@@ -101,13 +114,24 @@ class PRKMKSolver(diffrax.AbstractSolver):
         method, field = self.method, term.vector_field
         # diffrax runs a backward solve in the clock −t; step in the user's clock.
         s0, s1 = direction * t0, direction * t1
-        y1, increment, result, _ = method.step_with_increment(field, s0, y0, s1 - s0, args)
+        h = s1 - s0
+        y1, increment, result, _ = method.step_with_increment(field, s0, y0, h, args)
+        y_error = None
+        if self.adaptive:
+            # Error of the full step, entrywise in the embedding.
+            y_half, _, result_a, _ = method.step_with_increment(field, s0, y0, h / 2, args)
+            y_two, _, result_b, _ = method.step_with_increment(field, s0 + h / 2, y_half, h / 2, args)
+            y_error = jax.tree.map(jnp.subtract, y_two, y1)
+            for r in (result_a, result_b):
+                result = RESULTS.where(result == RESULTS.successful, r, result)
         zero = method.bundle.algebra_zeros(y0)
         # Slopes per unit of diffrax's clock, in which the interpolation runs.
         slope0 = jax.tree.map(lambda x: direction * x, method.slope(zero, method.generator(field, s0, y0, args)))
         slope1 = jax.tree.map(lambda x: direction * x, method.slope(increment, method.generator(field, s1, y1, args)))
         dense_info = dict(y0=y0, increment=increment, slope0=slope0, slope1=slope1, method=method)
-        return y1, None, dense_info, solver_state, result
+        if self.adaptive:
+            y1 = y_two
+        return y1, y_error, dense_info, solver_state, result
 
     def func(self, terms, t0, y0, args):
         term, direction = _unwrap(terms)

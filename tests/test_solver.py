@@ -165,3 +165,24 @@ def test_progress_meter(capsys):
     sol = _solve(_method(), 1.0, 0.1, y0, progress_meter=diffrax.TextProgressMeter(minimum_increase=0.5))
     assert sol.result == diffrax.RESULTS.successful
     assert "100.00%" in capsys.readouterr().out
+
+
+def test_pid_controller_reaches_the_tolerance():
+    """Step-doubling estimate with the order-4 Lobatto pair: the global error
+    at T = 10 stays within 10× rtol (measured 6.7×, 8.4×, 3.5×)."""
+    from helpers import reference
+
+    y0 = initial_state(COTANGENT)
+    ref = reference(COTANGENT, y0, 10.0)
+    solver = pk.PRKMKSolver(_method(pk.lobatto_iiia_iiib4), adaptive=True)
+    run = jax.jit(lambda rtol: diffrax.diffeqsolve(TERM, solver, 0.0, 10.0, 0.01, y0, jnp.asarray(INERTIA), stepsize_controller=diffrax.PIDController(rtol=rtol, atol=rtol), max_steps=4096))
+    steps = []
+    for rtol in (1e-4, 1e-6, 1e-8):
+        sol = run(rtol)
+        err = np.abs(state_vector(COTANGENT, jax.tree.map(lambda a: a[-1], sol.ys)) - ref).max()
+        assert err <= 10 * rtol, (rtol, err)
+        q = np.asarray(sol.ys.base.matrix[-1])
+        assert np.abs(q.T @ q - np.eye(3)).max() <= 1e-13
+        steps.append(int(sol.stats["num_accepted_steps"]))
+    assert steps[0] < steps[1] < steps[2]
+    assert solver.error_order(TERM) == 5 and pk.PRKMKSolver(_method()).error_order(TERM) is None
