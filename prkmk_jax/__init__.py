@@ -26,3 +26,4 @@ from .tableaus import (
 __version__ = "0.1.0"
 from .interpolation import OnGroupInterpolation as OnGroupInterpolation
 from .solver import PRKMKSolver as PRKMKSolver, PRKMKTerm as PRKMKTerm
+from .batch import batch_sharding as batch_sharding, shard_batch as shard_batch

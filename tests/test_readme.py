@@ -25,3 +25,8 @@ def test_readme_example_runs():
     code += "\nassert traj.ys.fiber.shape == (51, 3)\nassert traj.result == pk.RESULTS.successful\n"
     code += "assert sol.ys.fiber.shape == (7, 3)\n"
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT, timeout=300)
+
+
+def test_benchmark_scripts_run_quick():
+    for script in sorted((ROOT / "benchmarks").glob("*.py")):
+        subprocess.run([sys.executable, str(script), "--quick"], check=True, cwd=ROOT, timeout=300)
