@@ -23,7 +23,7 @@ def test_ci_runs_the_readme_test_command():
 def test_readme_example_runs():
     code = "\n".join(re.findall(r"```python\n(.*?)```", README, flags=re.S))
     code += "\nassert traj.ys.fiber.shape == (51, 3)\nassert traj.result == pk.RESULTS.successful\n"
-    code += "assert sol.ys.fiber.shape == (7, 3)\n"
+    code += "assert sol.ys.fiber.shape == (7, 3)\nassert out.fiber.shape == (8, 101, 3)\n"
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT, timeout=300)
 
 
