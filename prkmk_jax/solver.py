@@ -116,22 +116,22 @@ class PRKMKSolver(diffrax.AbstractSolver):
         s0, s1 = direction * t0, direction * t1
         h = s1 - s0
         y1, increment, result, _ = method.step_with_increment(field, s0, y0, h, args)
-        y_error = None
+        y_next, y_error = y1, None
         if self.adaptive:
-            # Error of the full step, entrywise in the embedding.
+            # Two half steps: carried on, and their difference from the full
+            # step (entrywise in the embedding) is the error estimate.
             y_half, _, result_a, _ = method.step_with_increment(field, s0, y0, h / 2, args)
-            y_two, _, result_b, _ = method.step_with_increment(field, s0 + h / 2, y_half, h / 2, args)
-            y_error = jax.tree.map(jnp.subtract, y_two, y1)
+            y_next, _, result_b, _ = method.step_with_increment(field, s0 + h / 2, y_half, h / 2, args)
+            y_error = jax.tree.map(jnp.subtract, y_next, y1)
             for r in (result_a, result_b):
                 result = RESULTS.where(result == RESULTS.successful, r, result)
         zero = method.bundle.algebra_zeros(y0)
-        # Slopes per unit of diffrax's clock, in which the interpolation runs.
+        # Dense output interpolates the full step y0 → y1; slopes are per unit
+        # of diffrax's clock, in which the interpolation runs.
         slope0 = jax.tree.map(lambda x: direction * x, method.slope(zero, method.generator(field, s0, y0, args)))
         slope1 = jax.tree.map(lambda x: direction * x, method.slope(increment, method.generator(field, s1, y1, args)))
         dense_info = dict(y0=y0, increment=increment, slope0=slope0, slope1=slope1, method=method)
-        if self.adaptive:
-            y1 = y_two
-        return y1, y_error, dense_info, solver_state, result
+        return y_next, y_error, dense_info, solver_state, result
 
     def func(self, terms, t0, y0, args):
         term, direction = _unwrap(terms)
