@@ -77,12 +77,13 @@ def _reference_rhs(t, z, inertia, cartesian):
     return np.concatenate([(g @ oh).ravel(), np.cross(pi, omega)])
 
 
-def reference(bundle, y0, t_end, inertia=INERTIA) -> np.ndarray:
-    """DOP853 at rtol = atol = 1e-13 on the embedding ℝ⁹×ℝ³ (or ℝ⁹×ℝ⁹)."""
+def reference(bundle, y0, t_end, inertia=INERTIA, t_eval=None) -> np.ndarray:
+    """DOP853 at rtol = atol = 1e-13 on the embedding ℝ⁹×ℝ³ (or ℝ⁹×ℝ⁹): the
+    state at `t_end`, or at each of `t_eval` (one row per time)."""
     cartesian = isinstance(bundle, pk.Cartesian)
     z0 = state_vector(bundle, y0)
-    sol = solve_ivp(_reference_rhs, (0.0, t_end), z0, method="DOP853", rtol=1e-13, atol=1e-13, args=(np.asarray(inertia), cartesian))
-    return sol.y[:, -1]
+    sol = solve_ivp(_reference_rhs, (0.0, t_end), z0, method="DOP853", rtol=1e-13, atol=1e-13, args=(np.asarray(inertia), cartesian), t_eval=t_eval)
+    return sol.y[:, -1] if t_eval is None else sol.y.T
 
 
 @functools.cache

@@ -42,6 +42,8 @@ def test_skew_arcsinh_refuses_large_momenta():
         rb.skew_arcsinh(np.asarray(pk.hat(jnp.array([0.0, 0.0, 2.5]))))
     with pytest.raises(ValueError, match="skew-symmetric"):
         rb.skew_arcsinh(np.eye(3))
+    with pytest.raises(ValueError, match="no real skew solution"):
+        rb.symmetric_initial_state(np.eye(3), np.array([0.0, 0.0, 2.5]))
 
 
 @pytest.mark.parametrize("name", ["sym_SE_exp", "sym_SE_cayley", "sym_SV_exp", "sym_SV_cayley"])

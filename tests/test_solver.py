@@ -6,10 +6,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy.integrate import solve_ivp
 
 import prkmk_jax as pk
-from helpers import INERTIA, initial_state, rigid_body_field, state_vector
+from helpers import INERTIA, initial_state, reference, rigid_body_field, state_vector
 
 COTANGENT = pk.Cotangent(pk.SO3)
 FIELD = rigid_body_field(COTANGENT, "body")
@@ -48,21 +47,11 @@ def test_non_autonomous_field_and_step_to():
     np.testing.assert_allclose(sol.ys.base.value[-1], traj.ys.base.value[-1], atol=1e-13)
 
 
-def _dense_reference(y0, ts):
-    def rhs(t, z):
-        g, pi = z[:9].reshape(3, 3), z[9:]
-        om = pi / INERTIA
-        return np.concatenate([(g @ np.asarray(pk.hat(jnp.asarray(om)))).ravel(), np.cross(pi, om)])
-
-    out = solve_ivp(rhs, (0, float(ts[-1])), state_vector(COTANGENT, y0), method="DOP853", rtol=1e-13, atol=1e-13, t_eval=np.asarray(ts))
-    return out.y.T
-
-
 @pytest.mark.parametrize("tab,dense_order", [(pk.stormer_verlet, 2), (pk.lobatto_iiia_iiib4, 3)], ids=["SV", "lobatto"])
 def test_dense_output_is_on_the_group_and_converges(tab, dense_order):
     y0 = initial_state(COTANGENT)
     ts = jnp.array([0.37, 0.61, 0.83, 0.97])  # never step points below
-    ref = _dense_reference(y0, ts)
+    ref = reference(COTANGENT, y0, float(ts[-1]), t_eval=np.asarray(ts))
     method = _method(tab)
     run = jax.jit(lambda dt: _solve(method, 1.0, dt, y0, saveat=diffrax.SaveAt(ts=ts), max_steps=4096))
     hs = np.array([0.1, 0.05, 0.025, 0.0125])
@@ -170,8 +159,6 @@ def test_progress_meter(capsys):
 def test_pid_controller_reaches_the_tolerance():
     """Step-doubling estimate with the order-4 Lobatto pair: the global error
     at T = 10 stays within 10× rtol (measured 6.7×, 8.4×, 3.5×)."""
-    from helpers import reference
-
     y0 = initial_state(COTANGENT)
     ref = reference(COTANGENT, y0, 10.0)
     solver = pk.PRKMKSolver(_method(pk.lobatto_iiia_iiib4), adaptive=True)

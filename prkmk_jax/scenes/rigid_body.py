@@ -17,7 +17,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ..bundles import AbstractSemidirect, BundleElement, Cartesian, DirectProduct
-from ..groups import SO3, SOn, hat, vee
+from ..groups import SO3, SOn, vee
 
 PAPER_INERTIA = np.array([7 / 8, 5 / 8, 1 / 4])
 """Eq. (5.2), acting on the vector form of M."""
@@ -62,9 +62,9 @@ def symmetric_initial_state(q0: np.ndarray, m0: np.ndarray) -> BundleElement:
     `m0` is a 3-vector (SO(3), vector form) or a skew (n, n) matrix (SO(n))."""
     m0 = np.asarray(m0, dtype=np.float64)
     if m0.ndim == 1:
-        s = skew_arcsinh(np.asarray(hat(jnp.asarray(m0 / 2))))
-        p0 = q0 @ np.asarray(SO3.exp(jnp.asarray(np.array([s[2, 1], s[0, 2], s[1, 0]]))).matrix)
-        return BundleElement(SO3(jnp.asarray(q0)), SO3(jnp.asarray(p0)))
+        if np.linalg.norm(m0) / 2 >= 1:
+            raise ValueError(f"sinh(S) = M₀/2 has no real skew solution: |M₀|/2 = {np.linalg.norm(m0) / 2:.3f} ≥ 1.")
+        return from_attitude_and_momentum(Cartesian(SO3), jnp.asarray(q0), jnp.asarray(m0))
     s = skew_arcsinh(m0 / 2)
     p0 = q0 @ np.asarray(SOn.exp(jnp.asarray(s)).matrix)
     return BundleElement(SOn(jnp.asarray(q0)), SOn(jnp.asarray(p0)))
@@ -129,7 +129,8 @@ def attitude_and_momentum(bundle, y: BundleElement) -> tuple[Array, Array]:
 def from_attitude_and_momentum(bundle, g: Array, pi: Array) -> BundleElement:
     """Inverse of `attitude_and_momentum` on SO(3) (P = g exp(sinh⁻¹(Π/2)) for `Cartesian`)."""
     if isinstance(bundle, Cartesian):
-        # Vector form of sinh⁻¹ of hat(Π/2): direction Π, angle arcsin(|Π|/2).
+        # `skew_arcsinh` of hat(Π/2) in vector form (differentiable): the
+        # direction of Π, the angle arcsin(|Π|/2).
         norm = jnp.linalg.norm(pi)
         s = jnp.arcsin(norm / 2) / norm * pi
         return BundleElement(SO3(g), SO3(g @ SO3.exp(s).matrix))
