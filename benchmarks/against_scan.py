@@ -2,8 +2,15 @@
 `lax.scan` integrator `prkmk_jax.integrate`, same method, same steps.
 
 Free rigid body on T*SO(3) (Cotangent, body form), Störmer–Verlet, exp
-coordinates, h = 0.01, a vmapped batch of initial momenta. Reports compile
-time and the median of repeated runs after compilation, side by side.
+coordinates, h = 0.01, a vmapped batch of initial momenta. A third column is
+a control: the same step in a bare `lax.while_loop` (diffrax's loop is a
+while loop, because its steps may be adaptive), which separates the cost of
+the loop construct from the cost of diffrax's bookkeeping.
+
+Compile time is reported separately; run times are medians after
+compilation. The runs of the three variants are interleaved (scan, diffrax,
+while, scan, …) so that all see the same machine load, and the ratios are
+medians of the per-round ratios.
 
     python benchmarks/against_scan.py            # batches 1, 64, 4096
     python benchmarks/against_scan.py --quick    # seconds; CI smoke test
@@ -24,27 +31,34 @@ import prkmk_jax as pk
 from prkmk_jax.scenes import rigid_body as rb
 
 
-def _time(fn, *args, repeats):
+def _compile(fn, *args):
     start = time.perf_counter()
     compiled = jax.jit(fn).lower(*args).compile()
     compile_s = time.perf_counter() - start
     jax.block_until_ready(compiled(*args))  # warm-up
-    runs = []
+    return compiled, compile_s
+
+
+def _interleaved(fns, args, repeats):
+    """Times of each compiled fn over `repeats` rounds, run in turn."""
+    times = [[] for _ in fns]
     for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(compiled(*args))
-        runs.append(time.perf_counter() - start)
-    return compile_s, statistics.median(runs)
+        for k, fn in enumerate(fns):
+            start = time.perf_counter()
+            jax.block_until_ready(fn(*args))
+            times[k].append(time.perf_counter() - start)
+    return times
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="tiny sizes, for a smoke test")
+    parser.add_argument("--repeats", type=int, default=21)
     parser.add_argument("--json", help="also write the results here")
     args = parser.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
 
-    batches, steps, repeats = ((1, 8), 20, 2) if args.quick else ((1, 64, 4096), 200, 7)
+    batches, steps, repeats = ((1, 8), 20, 2) if args.quick else ((1, 64, 4096), 200, args.repeats)
     h = 0.01
     bundle = pk.Cotangent(pk.SO3)
     field = rb.unreduced_rigid_body(bundle)
@@ -52,24 +66,51 @@ def main(argv=None):
     inertia = jnp.asarray(rb.PAPER_INERTIA)
     g0 = jnp.asarray(rb.random_rotation(rb.PAPER_SEED))
 
+    def initial(pi0):
+        return pk.BundleElement(pk.SO3(g0), pi0)
+
     def scan_run(pi0):
-        y0 = pk.BundleElement(pk.SO3(g0), pi0)
-        return pk.integrate(method, field, y0, 0.0, h, steps, inertia, save_every=steps).ys
+        return pk.integrate(method, field, initial(pi0), 0.0, h, steps, inertia, save_every=steps).ys
 
     def diffrax_run(pi0):
-        y0 = pk.BundleElement(pk.SO3(g0), pi0)
-        return diffrax.diffeqsolve(pk.PRKMKTerm(field), pk.PRKMKSolver(method), 0.0, steps * h, h, y0, inertia, max_steps=steps).ys
+        term, solver = pk.PRKMKTerm(field), pk.PRKMKSolver(method)
+        return diffrax.diffeqsolve(term, solver, 0.0, steps * h, h, initial(pi0), inertia, max_steps=steps).ys
+
+    def while_run(pi0):
+        def body(carry):
+            n, y = carry
+            return n + 1, method.step(field, n * h, y, h, inertia)[0]
+
+        return jax.lax.while_loop(lambda carry: carry[0] < steps, body, (0, initial(pi0)))[1]
 
     rows = []
-    print(f"{'batch':>6s} {'scan compile s':>15s} {'diffrax compile s':>18s} {'scan ns/step':>13s} {'diffrax ns/step':>16s} {'ratio':>6s}")
+    header = ("batch", "compile s scan/diffrax", "ns/step scan", "diffrax", "while", "diffrax/scan", "while/scan", "diffrax/while")
+    print(f"{header[0]:>6s} {header[1]:>23s} {header[2]:>13s} {header[3]:>8s} {header[4]:>8s} {header[5]:>13s} {header[6]:>11s} {header[7]:>14s}")
     for batch in batches:
         pis = jnp.asarray(rb.PAPER_MOMENTUM) * (1 + 0.1 * jnp.asarray(np.random.default_rng(0).normal(size=(batch, 1))))
-        scan_c, scan_t = _time(jax.vmap(scan_run), pis, repeats=repeats)
-        dfx_c, dfx_t = _time(jax.vmap(diffrax_run), pis, repeats=repeats)
-        per = lambda t: t / (steps * batch) * 1e9
-        row = dict(batch=batch, steps=steps, scan_compile_s=scan_c, diffrax_compile_s=dfx_c, scan_ns_per_step=per(scan_t), diffrax_ns_per_step=per(dfx_t), ratio=dfx_t / scan_t)
+        compiled = [_compile(jax.vmap(fn), pis) for fn in (scan_run, diffrax_run, while_run)]
+        times = _interleaved([c for c, _ in compiled], (pis,), repeats)
+        per = lambda ts: statistics.median(ts) / (steps * batch) * 1e9
+        ratio = lambda a, b: statistics.median(x / y for x, y in zip(times[a], times[b]))
+        row = dict(
+            batch=batch,
+            steps=steps,
+            scan_compile_s=compiled[0][1],
+            diffrax_compile_s=compiled[1][1],
+            scan_ns_per_step=per(times[0]),
+            diffrax_ns_per_step=per(times[1]),
+            while_ns_per_step=per(times[2]),
+            diffrax_over_scan=ratio(1, 0),
+            while_over_scan=ratio(2, 0),
+            diffrax_over_while=ratio(1, 2),
+        )
         rows.append(row)
-        print(f"{batch:6d} {scan_c:15.2f} {dfx_c:18.2f} {row['scan_ns_per_step']:13.0f} {row['diffrax_ns_per_step']:16.0f} {row['ratio']:6.2f}")
+        print(
+            f"{batch:6d} {row['scan_compile_s']:11.2f}/{row['diffrax_compile_s']:<11.2f} {row['scan_ns_per_step']:13.0f} "
+            f"{row['diffrax_ns_per_step']:8.0f} {row['while_ns_per_step']:8.0f} {row['diffrax_over_scan']:13.2f} "
+            f"{row['while_over_scan']:11.2f} {row['diffrax_over_while']:14.2f}",
+            flush=True,
+        )
     meta = dict(machine=platform.platform(), devices=[str(d) for d in jax.devices()], jax=jax.__version__, repeats=repeats, rows=rows)
     if args.json:
         with open(args.json, "w") as f:
