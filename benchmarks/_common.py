@@ -1,0 +1,272 @@
+"""Shared pieces of the benchmark scripts (not a script itself).
+
+The problem is the free rigid body g' = gΩ̂, Π' = Π × Ω, Ω = Π/I, with the
+paper's inertia (5.2) and momentum (5.1) and a random initial attitude. The
+PRKMK methods see it on T*SO(3) (`Cotangent(SO3)`, body form); the peers see
+the embedding ℝ⁹×ℝ³ (the rotation matrix flattened row-major, then Π).
+
+Accuracy oracle: SciPy DOP853 at rtol = atol = 1e-13 on the embedding. Its
+body momentum is cross-checked against the closed-form solution through
+Jacobi elliptic functions (`elliptic_momentum`), in
+`tests/test_benchmark_reference.py`.
+"""
+
+import statistics
+import time
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy.integrate import solve_ivp
+from scipy.special import ellipj, ellipkinc
+
+import prkmk_jax as pk
+from prkmk_jax.scenes import rigid_body as rb
+
+INERTIA = np.asarray(rb.PAPER_INERTIA)
+MOMENTUM = np.asarray(rb.PAPER_MOMENTUM)
+
+
+def initial_conditions(batch: int | None, seed: int = 0, scale: float = 1.0):
+    """(Q₀, Π₀): the paper's Π₀ and a random attitude (batch=None), or a batch
+    of random attitudes and momenta Π₀·(1 + 0.1·N(0, 1)) per component."""
+    if batch is None:
+        return rb.random_rotation(rb.PAPER_SEED), scale * MOMENTUM
+    rng = np.random.default_rng(seed)
+    qs = np.stack([rb.random_rotation(seed * 100003 + k) for k in range(batch)])
+    pis = scale * MOMENTUM * (1 + 0.1 * rng.normal(size=(batch, 3)))
+    return qs, pis
+
+
+# --- the embedding ℝ⁹×ℝ³ -----------------------------------------------------------
+def _hat_np(w):
+    return np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+
+
+def embedding_rhs_np(t, z, inertia):
+    q, pi = z[:9].reshape(3, 3), z[9:]
+    omega = pi / inertia
+    return np.concatenate([(q @ _hat_np(omega)).ravel(), np.cross(pi, omega)])
+
+
+def embedding_rhs(t, z, inertia):
+    """The same field in JAX, for diffrax's ODETerm (a flat 12-vector)."""
+    q, pi = z[:9].reshape(3, 3), z[9:]
+    omega = pi / inertia
+    return jnp.concatenate([(q @ pk.hat(omega)).ravel(), jnp.cross(pi, omega)])
+
+
+def to_vector(q, pi):
+    q, pi = np.asarray(q), np.asarray(pi)
+    return np.concatenate([q.reshape(*q.shape[:-2], 9), pi], axis=-1)
+
+
+def from_vector(z):
+    z = np.asarray(z)
+    return z[..., :9].reshape(*z.shape[:-1], 3, 3), z[..., 9:]
+
+
+def reference(q0, pi0, t_end, inertia=INERTIA, t_eval=None, tol=1e-13):
+    """DOP853 at rtol = atol = `tol`: (Q, Π) at `t_end`, or at each of `t_eval`."""
+    sol = solve_ivp(
+        embedding_rhs_np,
+        (0.0, t_end),
+        to_vector(q0, pi0),
+        method="DOP853",
+        rtol=tol,
+        atol=tol,
+        args=(np.asarray(inertia),),
+        t_eval=t_eval,
+    )
+    if not sol.success:
+        raise RuntimeError(sol.message)
+    z = sol.y[:, -1] if t_eval is None else sol.y.T
+    return from_vector(z)
+
+
+def elliptic_momentum(pi0, inertia, t):
+    """Body momentum Π(t) of Euler's equations Π' = Π × I⁻¹Π in closed form.
+
+    With the axes ordered so that I_c, I_s, I_d are the inertia of the axes
+    carrying cn, sn and dn, Π_c = A_c cn u, Π_s = A_s sn u, Π_d = ±A_d dn u,
+    u = ±λt + u₀ (Landau–Lifshitz §37): the dn axis is the one of largest
+    inertia when |Π|² > 2H·I_mid, of smallest inertia otherwise. u₀ comes
+    from the initial phase, the signs from Π₀ and from Π'(0).
+    """
+    pi0, inertia, t = (
+        np.asarray(pi0, float),
+        np.asarray(inertia, float),
+        np.asarray(t, float),
+    )
+    m2 = pi0 @ pi0
+    two_h = pi0 @ (pi0 / inertia)
+    order = np.argsort(inertia)
+    lo, mid, hi = order
+    c, s, d = (lo, mid, hi) if m2 > two_h * inertia[mid] else (hi, mid, lo)
+    i_c, i_s, i_d = inertia[c], inertia[s], inertia[d]
+    a_c = i_c * np.sqrt((two_h * i_d - m2) / (i_c * (i_d - i_c)))
+    a_s = i_s * np.sqrt((two_h * i_d - m2) / (i_s * (i_d - i_s)))
+    a_d = i_d * np.sqrt((m2 - two_h * i_c) / (i_d * (i_d - i_c)))
+    lam = np.sqrt((i_d - i_s) * (m2 - two_h * i_c) / (i_c * i_s * i_d))
+    k2 = (i_s - i_c) * (two_h * i_d - m2) / ((i_d - i_s) * (m2 - two_h * i_c))
+    phi0 = np.arctan2(pi0[s] / a_s, pi0[c] / a_c)
+    u0 = ellipkinc(phi0, k2)
+    sn0, cn0, dn0, _ = ellipj(u0, k2)
+    # The direction of u: match d/dt of the sn and cn components at t = 0.
+    dpi0 = np.cross(pi0, pi0 / inertia)
+    rate_s, rate_c = a_s * cn0 * dn0 * lam, -a_c * sn0 * dn0 * lam
+    sigma = np.sign(dpi0[s] * rate_s + dpi0[c] * rate_c) or 1.0
+    sn, cn, dn, _ = ellipj(sigma * lam * t + u0, k2)
+    out = np.empty(t.shape + (3,))
+    out[..., c], out[..., s], out[..., d] = (
+        a_c * cn,
+        a_s * sn,
+        np.sign(pi0[d]) * a_d * dn,
+    )
+    return out
+
+
+# --- measures ----------------------------------------------------------------------
+def geodesic_distance(q, q_ref):
+    """Angle of the rotation q_refᵀq, 2·arcsin(‖q_refᵀq − I‖_F / √8) (accurate
+    for small angles, unlike arccos of the trace)."""
+    r = np.swapaxes(np.asarray(q_ref), -1, -2) @ np.asarray(q)
+    return 2 * np.arcsin(
+        np.minimum(np.linalg.norm(r - np.eye(3), axis=(-2, -1)) / np.sqrt(8), 1.0)
+    )
+
+
+def invariants(q, pi, inertia=INERTIA):
+    """Energy ½Π·I⁻¹Π, |Π|, spatial momentum QΠ, orthogonality ‖QᵀQ − I‖_F."""
+    q, pi = np.asarray(q), np.asarray(pi)
+    energy = 0.5 * np.sum(pi * pi / inertia, axis=-1)
+    norm = np.linalg.norm(pi, axis=-1)
+    spatial = np.einsum("...ij,...j->...i", q, pi)
+    ortho = np.linalg.norm(np.swapaxes(q, -1, -2) @ q - np.eye(3), axis=(-2, -1))
+    return dict(
+        energy=energy, momentum_norm=norm, spatial_momentum=spatial, orthogonality=ortho
+    )
+
+
+# --- solvers -------------------------------------------------------------------------
+MAX_STEPS = 1_000_000
+
+
+def prkmk_solver(tableau, coordinates="exp", adaptive=False, root_finder=None):
+    coords = pk.Exp() if coordinates == "exp" else pk.Cayley()
+    method = pk.PRKMK(
+        pk.Cotangent(pk.SO3), coords, tableau, form="body", root_finder=root_finder
+    )
+    return pk.PRKMKSolver(method, adaptive=adaptive)
+
+
+FIELD = rb.unreduced_rigid_body(pk.Cotangent(pk.SO3))
+
+
+def prkmk_final(solver, adaptive=False, t_eval=None):
+    """(q0, π0, t1, dt, rtol, inertia) -> (Q, Π, num_steps) by diffeqsolve;
+    dt and rtol are data, so a sweep compiles once. With `t_eval`, values at
+    those times instead of at t1."""
+
+    def run(q0, pi0, t1, dt, rtol, inertia):
+        y0 = pk.BundleElement(pk.SO3(q0), pi0)
+        controller = (
+            diffrax.PIDController(rtol=rtol, atol=rtol)
+            if adaptive
+            else diffrax.ConstantStepSize()
+        )
+        saveat = (
+            diffrax.SaveAt(t1=True) if t_eval is None else diffrax.SaveAt(ts=t_eval)
+        )
+        sol = diffrax.diffeqsolve(
+            pk.PRKMKTerm(FIELD),
+            solver,
+            0.0,
+            t1,
+            dt,
+            y0,
+            inertia,
+            saveat=saveat,
+            stepsize_controller=controller,
+            max_steps=MAX_STEPS,
+        )
+        q, pi = sol.ys.base.matrix, sol.ys.fiber
+        return (q[-1], pi[-1]) if t_eval is None else (q, pi), sol.stats[
+            "num_accepted_steps"
+        ]
+
+    return run
+
+
+def diffrax_final(solver, adaptive, t_eval=None):
+    """The same on the embedding with a diffrax Runge–Kutta solver."""
+
+    def run(q0, pi0, t1, dt, rtol, inertia):
+        z0 = jnp.concatenate([q0.reshape(9), pi0])
+        controller = (
+            diffrax.PIDController(rtol=rtol, atol=rtol)
+            if adaptive
+            else diffrax.ConstantStepSize()
+        )
+        saveat = (
+            diffrax.SaveAt(t1=True) if t_eval is None else diffrax.SaveAt(ts=t_eval)
+        )
+        dt0 = None if adaptive else dt
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(embedding_rhs),
+            solver,
+            0.0,
+            t1,
+            dt0,
+            z0,
+            inertia,
+            saveat=saveat,
+            stepsize_controller=controller,
+            max_steps=MAX_STEPS,
+        )
+        z = sol.ys
+        q, pi = z[..., :9].reshape(*z.shape[:-1], 3, 3), z[..., 9:]
+        return (q[-1], pi[-1]) if t_eval is None else (q, pi), sol.stats[
+            "num_accepted_steps"
+        ]
+
+    return run
+
+
+def batched(run):
+    """vmap over the initial conditions only."""
+    return jax.vmap(run, in_axes=(0, 0, None, None, None, None))
+
+
+# --- timing --------------------------------------------------------------------------
+def compile_fn(fn, *args):
+    """jit-compile; returns (compiled, compile seconds)."""
+    start = time.perf_counter()
+    compiled = jax.jit(fn).lower(*args).compile()
+    return compiled, time.perf_counter() - start
+
+
+def median_time(compiled, *args, repeats=5):
+    """Median wall time of `repeats` runs after one warm-up, and the output."""
+    out = jax.block_until_ready(compiled(*args))
+    runs = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(compiled(*args))
+        runs.append(time.perf_counter() - start)
+    return statistics.median(runs), out
+
+
+def machine():
+    import platform
+
+    import jax as _jax
+
+    return dict(
+        platform=platform.platform(),
+        processor=platform.processor() or platform.machine(),
+        cpus=__import__("os").cpu_count(),
+        jax=_jax.__version__,
+        devices=[str(d) for d in _jax.devices()],
+    )

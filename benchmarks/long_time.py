@@ -1,0 +1,270 @@
+"""Long-time behaviour against cost: invariant drift over T = 1000.
+
+One free rigid body (paper inertia and momentum). For each run: the largest
+relative error over t ∈ {0, 1, …, T} of the energy, of |Π| and of the
+spatial momentum QΠ (relative to |Π₀|), the largest ‖QᵀQ − I‖_F, and the
+wall time after compilation (median). PRKMK fixed-step methods (T*SO(3),
+body form, exp coordinates) run through `prkmk_jax.integrate` and are read at
+step points; PRKMK Lobatto with step doubling and the diffrax peers on the
+embedding run through `diffeqsolve` with `SaveAt(ts=…)` (dense output).
+
+"At matched cost": for each PRKMK run, the smallest error any diffrax run
+reached in no more wall time, divided by the PRKMK run's error.
+
+    python benchmarks/long_time.py --out benchmarks/results
+    python benchmarks/long_time.py --quick
+"""
+
+import argparse
+import csv
+import json
+from pathlib import Path
+
+import _common as C
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import prkmk_jax as pk
+
+KEYS = ("energy", "momentum_norm", "spatial_momentum", "orthogonality")
+
+
+def drifts(q, pi, inertia=C.INERTIA):
+    inv = C.invariants(q, pi, inertia)
+    scale = np.linalg.norm(pi[0])
+    return dict(
+        energy=float(np.max(np.abs(inv["energy"] / inv["energy"][0] - 1))),
+        momentum_norm=float(
+            np.max(np.abs(inv["momentum_norm"] - inv["momentum_norm"][0])) / scale
+        ),
+        spatial_momentum=float(
+            np.max(
+                np.linalg.norm(
+                    inv["spatial_momentum"] - inv["spatial_momentum"][0], axis=-1
+                )
+            )
+            / scale
+        ),
+        orthogonality=float(np.max(inv["orthogonality"])),
+    )
+
+
+def _prkmk_fixed(tableau, t_end):
+    method = pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), tableau, form="body")
+
+    def make(h):
+        n, every = int(round(t_end / h)), int(round(1.0 / h))
+
+        def run(q0, pi0, inertia):
+            y0 = pk.BundleElement(pk.SO3(q0), pi0)
+            ys = pk.integrate(
+                method, C.FIELD, y0, 0.0, h, n, inertia, save_every=every
+            ).ys
+            return ys.base.matrix, ys.fiber
+
+        return run
+
+    return make
+
+
+def _dense(final_factory, solver, t_end, adaptive):
+    ts = jnp.linspace(0.0, t_end, int(t_end) + 1)
+    run = (
+        final_factory(solver, adaptive, t_eval=ts)
+        if final_factory is C.diffrax_final
+        else C.prkmk_final(solver, adaptive, t_eval=ts)
+    )
+
+    def make(param):
+        dt, rtol = (0.1, param) if adaptive else (param, 1e-6)
+
+        def go(q0, pi0, inertia):
+            (q, pi), _ = run(q0, pi0, t_end, dt, rtol, inertia)
+            return q, pi
+
+        return go
+
+    return make
+
+
+def _runs(quick, t_end):
+    fixed_h = [0.05] if quick else [0.1, 0.05, 0.02]
+    rtols = [1e-6] if quick else [1e-4, 1e-6, 1e-8, 1e-10]
+    runs = []
+    for name, tab in (
+        ("SE", pk.symplectic_euler),
+        ("SV", pk.stormer_verlet),
+        ("Lobatto4", pk.lobatto_iiia_iiib4),
+    ):
+        if quick and name != "SV":
+            continue
+        runs += [
+            (f"PRKMK {name} exp", "prkmk", "h", h, _prkmk_fixed(tab, t_end))
+            for h in fixed_h
+        ]
+    if not quick:
+        solver = C.prkmk_solver(pk.lobatto_iiia_iiib4, adaptive=True)
+        runs += [
+            (
+                "PRKMK Lobatto4 exp adaptive",
+                "prkmk",
+                "rtol",
+                r,
+                _dense(None, solver, t_end, True),
+            )
+            for r in [1e-6, 1e-8, 1e-10]
+        ]
+    for name, solver in (
+        ("Tsit5", diffrax.Tsit5()),
+        ("Dopri5", diffrax.Dopri5()),
+        ("Dopri8", diffrax.Dopri8()),
+    ):
+        if quick and name != "Tsit5":
+            continue
+        runs += [
+            (
+                f"diffrax {name} adaptive",
+                "diffrax",
+                "rtol",
+                r,
+                _dense(C.diffrax_final, solver, t_end, True),
+            )
+            for r in rtols
+        ]
+    if not quick:
+        runs += [
+            (
+                "diffrax Tsit5 fixed",
+                "diffrax",
+                "h",
+                h,
+                _dense(C.diffrax_final, diffrax.Tsit5(), t_end, False),
+            )
+            for h in fixed_h
+        ]
+    return runs
+
+
+def matched_cost(rows):
+    out = []
+    peers = [r for r in rows if r["family"] == "diffrax" and r["ok"]]
+    for r in rows:
+        if r["family"] != "prkmk" or not r["ok"]:
+            continue
+        cheaper = [p for p in peers if p["wall_s"] <= r["wall_s"]]
+        entry = dict(method=r["method"], parameter=r["parameter"], wall_s=r["wall_s"])
+        for key in ("energy", "momentum_norm", "spatial_momentum"):
+            best = min((p[key] for p in cheaper), default=float("nan"))
+            entry[f"{key}_ratio"] = (
+                best / max(r[key], 1e-300) if cheaper else float("nan")
+            )
+        out.append(entry)
+    return out
+
+
+def plot(rows, path, t_end):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 2, figsize=(12, 9), sharex=True)
+    labels = dict(
+        energy="max |H/H₀ − 1|",
+        momentum_norm="max ||Π| − |Π₀|| / |Π₀|",
+        spatial_momentum="max |QΠ − Q₀Π₀| / |Π₀|",
+        orthogonality="max ‖QᵀQ − I‖_F",
+    )
+    for method in sorted({r["method"] for r in rows}):
+        pts = sorted(
+            (r for r in rows if r["method"] == method and r["ok"]),
+            key=lambda r: r["wall_s"],
+        )
+        if not pts:
+            continue
+        style = "-o" if pts[0]["family"] == "prkmk" else "--s"
+        for ax, key in zip(axes.ravel(), KEYS):
+            ax.loglog(
+                [p["wall_s"] for p in pts],
+                [max(p[key], 1e-17) for p in pts],
+                style,
+                ms=4,
+                label=method,
+            )
+    for ax, key in zip(axes.ravel(), KEYS):
+        ax.set_ylabel(labels[key])
+        ax.grid(True, which="both", alpha=0.3)
+    for ax in axes[1]:
+        ax.set_xlabel("wall time after compilation (s)")
+    axes[0, 1].legend(fontsize=7)
+    fig.suptitle(
+        f"Free rigid body, invariant drift over T = {t_end:g} against cost (values below 1e-17 drawn at 1e-17)"
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--out", default="benchmarks/results")
+    args = parser.parse_args(argv)
+    jax.config.update("jax_enable_x64", True)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t_end = 20.0 if args.quick else 1000.0
+    repeats = 1 if args.quick else 3
+    q0, pi0 = C.initial_conditions(None)
+    q0, pi0, inertia = jnp.asarray(q0), jnp.asarray(pi0), jnp.asarray(C.INERTIA)
+    rows = []
+    for name, family, kind, param, make in _runs(args.quick, t_end):
+        compiled, compile_s = C.compile_fn(make(param), q0, pi0, inertia)
+        try:
+            wall, (q, pi) = C.median_time(compiled, q0, pi0, inertia, repeats=repeats)
+            q, pi = np.asarray(q), np.asarray(pi)
+            ok = bool(np.all(np.isfinite(pi)))
+        except Exception as err:
+            print(f"  {name} {kind}={param}: failed ({type(err).__name__})")
+            wall, ok = float("nan"), False
+        row = dict(
+            method=name,
+            family=family,
+            kind=kind,
+            parameter=param,
+            wall_s=wall,
+            compile_s=compile_s,
+            ok=ok,
+        )
+        row.update(drifts(q, pi) if ok else {k: float("nan") for k in KEYS})
+        rows.append(row)
+        print(
+            f"{name:30s} {kind}={param:<7.0e} wall={wall:8.3f}s  "
+            + "  ".join(f"{k}={row[k]:8.1e}" for k in KEYS),
+            flush=True,
+        )
+    plot(rows, out / "long_time.png", t_end)
+    with open(out / "long_time.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    matched = matched_cost(rows)
+    print("\nbest diffrax error at no more wall time / PRKMK error:")
+    for m in matched:
+        print(
+            f"  {m['method']:30s} {m['parameter']:<7.0e} wall={m['wall_s']:8.3f}s  energy ×{m['energy_ratio']:.1e}  |Π| ×{m['momentum_norm_ratio']:.1e}  QΠ ×{m['spatial_momentum_ratio']:.1e}"
+        )
+    with open(out / "long_time.json", "w") as f:
+        json.dump(
+            dict(machine=C.machine(), t_end=t_end, rows=rows, matched_cost=matched),
+            f,
+            indent=1,
+        )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,246 @@
+"""Throughput, compile time and gradient cost.
+
+1. Trajectory-steps per second against batch size, free rigid body, h = 0.01:
+   PRKMK Störmer–Verlet (T*SO(3), body form, exp) through `lax.scan`
+   (`prkmk_jax.integrate`) and through `diffeqsolve`, in float64 and
+   float32, and diffrax Tsit5 with constant steps on the embedding ℝ⁹×ℝ³.
+   The step count per run shrinks with the batch so every run does a
+   similar amount of work; also reported: implicit iterations per step.
+2. Compile time (lower + compile of a fresh jit) against the number of
+   stages: symplectic Euler (1), Störmer–Verlet (2), Lobatto IIIA–IIIB (3).
+3. Forward against forward + backward: `jax.grad` of a loss of the final
+   momenta with respect to the inertia, batch 64, 200 steps, through the
+   scan integrator and through diffeqsolve (RecursiveCheckpointAdjoint).
+
+    python benchmarks/throughput.py --out benchmarks/results
+    python benchmarks/throughput.py --quick
+"""
+
+import argparse
+import json
+from pathlib import Path
+
+import _common as C
+import diffrax
+import jax
+import jax.numpy as jnp
+
+import prkmk_jax as pk
+
+H = 0.01
+
+
+def _scan(method, steps):
+    def run(q0, pi0, inertia):
+        y0 = pk.BundleElement(pk.SO3(q0), pi0)
+        traj = pk.integrate(
+            method, C.FIELD, y0, 0.0, H, steps, inertia, save_every=steps
+        )
+        return traj.ys.fiber[-1], traj.stats["num_iterations"]
+
+    return run
+
+
+def _diffeqsolve(method, steps):
+    def run(q0, pi0, inertia):
+        y0 = pk.BundleElement(pk.SO3(q0), pi0)
+        sol = diffrax.diffeqsolve(
+            pk.PRKMKTerm(C.FIELD),
+            pk.PRKMKSolver(method),
+            0.0,
+            steps * H,
+            H,
+            y0,
+            inertia,
+            max_steps=steps,
+        )
+        return sol.ys.fiber[-1], jnp.nan
+
+    return run
+
+
+def _tsit5(steps):
+    def run(q0, pi0, inertia):
+        z0 = jnp.concatenate([q0.reshape(9), pi0])
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(C.embedding_rhs),
+            diffrax.Tsit5(),
+            0.0,
+            steps * H,
+            H,
+            z0,
+            inertia,
+            max_steps=steps,
+        )
+        return sol.ys[-1, 9:], jnp.nan
+
+    return run
+
+
+def throughput(quick, repeats):
+    batches = [1, 64] if quick else [1, 64, 1024, 16384, 65536]
+    method64 = pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), pk.stormer_verlet, form="body")
+    rows = []
+    for batch in batches:
+        steps = 10 if quick else int(min(400, max(10, 2_000_000 // (batch * 10))))
+        qs, pis = C.initial_conditions(batch, seed=3)
+        for name, dtype, make in (
+            ("PRKMK SV scan", jnp.float64, lambda: _scan(method64, steps)),
+            ("PRKMK SV scan float32", jnp.float32, lambda: _scan(method64, steps)),
+            (
+                "PRKMK SV diffeqsolve",
+                jnp.float64,
+                lambda: _diffeqsolve(method64, steps),
+            ),
+            ("diffrax Tsit5 (embedding)", jnp.float64, lambda: _tsit5(steps)),
+        ):
+            args = (
+                jnp.asarray(qs, dtype),
+                jnp.asarray(pis, dtype),
+                jnp.asarray(C.INERTIA, dtype),
+            )
+            compiled, compile_s = C.compile_fn(
+                jax.vmap(make(), in_axes=(0, 0, None)), *args
+            )
+            wall, (_, iters) = C.median_time(compiled, *args, repeats=repeats)
+            rate = batch * steps / wall
+            iters_per_step = (
+                float(jnp.mean(iters)) / steps
+                if jnp.all(jnp.isfinite(iters))
+                else float("nan")
+            )
+            rows.append(
+                dict(
+                    batch=batch,
+                    method=name,
+                    steps=steps,
+                    wall_s=wall,
+                    compile_s=compile_s,
+                    traj_steps_per_s=rate,
+                    iterations_per_step=iters_per_step,
+                )
+            )
+            print(
+                f"batch {batch:6d} {name:28s} steps={steps:4d} wall={wall:8.4f}s  {rate:10.3e} traj-steps/s  compile {compile_s:5.2f}s  iterations/step {iters_per_step:.1f}",
+                flush=True,
+            )
+    return rows
+
+
+def compile_vs_stages(quick):
+    rows = []
+    qs, pis = C.initial_conditions(8, seed=3)
+    args = (jnp.asarray(qs), jnp.asarray(pis), jnp.asarray(C.INERTIA))
+    for name, tab in (
+        ("SE", pk.symplectic_euler),
+        ("SV", pk.stormer_verlet),
+        ("Lobatto4", pk.lobatto_iiia_iiib4),
+    ):
+        method = pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), tab, form="body")
+        for path, make in (("scan", _scan), ("diffeqsolve", _diffeqsolve)):
+            _, compile_s = C.compile_fn(
+                jax.vmap(make(method, 50), in_axes=(0, 0, None)), *args
+            )
+            rows.append(
+                dict(
+                    tableau=name, stages=tab.num_stages, path=path, compile_s=compile_s
+                )
+            )
+            print(
+                f"{name:9s} stages={tab.num_stages}  {path:12s} compile {compile_s:5.2f}s",
+                flush=True,
+            )
+    return rows
+
+
+def gradient_cost(quick, repeats):
+    batch, steps = (8, 20) if quick else (64, 200)
+    method = pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), pk.stormer_verlet, form="body")
+    qs, pis = C.initial_conditions(batch, seed=4)
+    qs, pis = jnp.asarray(qs), jnp.asarray(pis)
+    target = jnp.asarray(C.MOMENTUM)
+    rows = []
+    for path, make in (("scan", _scan), ("diffeqsolve", _diffeqsolve)):
+        run = jax.vmap(make(method, steps), in_axes=(0, 0, None))
+
+        def loss(inertia, run=run):
+            return jnp.mean(jnp.sum((run(qs, pis, inertia)[0] - target) ** 2, axis=-1))
+
+        inertia = jnp.asarray(C.INERTIA)
+        fwd, fwd_c = C.compile_fn(loss, inertia)
+        bwd, bwd_c = C.compile_fn(jax.value_and_grad(loss), inertia)
+        fwd_t, _ = C.median_time(fwd, inertia, repeats=repeats)
+        bwd_t, _ = C.median_time(bwd, inertia, repeats=repeats)
+        rows.append(
+            dict(
+                path=path,
+                batch=batch,
+                steps=steps,
+                forward_s=fwd_t,
+                forward_backward_s=bwd_t,
+                ratio=bwd_t / fwd_t,
+                forward_compile_s=fwd_c,
+                gradient_compile_s=bwd_c,
+            )
+        )
+        print(
+            f"{path:12s} forward {fwd_t:8.4f}s  forward+backward {bwd_t:8.4f}s  ratio {bwd_t / fwd_t:5.2f}  compile {fwd_c:5.2f}s / {bwd_c:5.2f}s",
+            flush=True,
+        )
+    return rows
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--out", default="benchmarks/results")
+    parser.add_argument("--parts", default="throughput,compile,gradient")
+    args = parser.parse_args(argv)
+    jax.config.update("jax_enable_x64", True)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    repeats = 1 if args.quick else 3
+    result = dict(machine=C.machine())
+    parts = args.parts.split(",")
+    if "throughput" in parts:
+        result["throughput"] = throughput(args.quick, repeats)
+    if "compile" in parts:
+        result["compile_vs_stages"] = compile_vs_stages(args.quick)
+    if "gradient" in parts:
+        result["gradient"] = gradient_cost(args.quick, repeats)
+    with open(out / "throughput.json", "w") as f:
+        json.dump(result, f, indent=1)
+    if "throughput" in result:
+        plot(result["throughput"], out / "throughput.png")
+
+
+def plot(rows, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 5))
+    for name in dict.fromkeys(r["method"] for r in rows):
+        pts = [r for r in rows if r["method"] == name]
+        ax.loglog(
+            [p["batch"] for p in pts],
+            [p["traj_steps_per_s"] for p in pts],
+            "-o",
+            label=name,
+        )
+    ax.axhline(3e7, color="k", ls=":", label="target 3·10⁷ (batch ≥ 10⁴)")
+    ax.set_xlabel("batch size (trajectories)")
+    ax.set_ylabel("trajectory-steps per second")
+    ax.set_title("Free rigid body, h = 0.01, CPU")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,328 @@
+"""Work–precision: error at T = 10 against wall time after compilation.
+
+Free rigid body (paper inertia and momentum, random attitude). PRKMK methods
+(symplectic Euler, Störmer–Verlet, Lobatto IIIA–IIIB 4; exp and Cayley
+coordinates) run on T*SO(3) in body form through `diffrax.diffeqsolve`
+with fixed steps over a sweep of h, and Lobatto with step doubling under a
+PIDController over a sweep of rtol. The peers run on the embedding ℝ⁹×ℝ³:
+diffrax Tsit5, Dopri5 and Dopri8 (adaptive over rtol = atol, and fixed
+step), SciPy solve_ivp DOP853 and RK45 (adaptive; single trajectory only,
+SciPy has no batch mode).
+
+Errors: the geodesic distance on SO(3) between Q(T) and the reference, and
+|Π(T) − Π_ref(T)|; the reference is DOP853 at rtol = atol = 1e-13. In the
+batch regime (1024 trajectories timed together) the error is the maximum
+over the first 32 trajectories.
+
+Writes work_precision_{single,batch}.png, work_precision.csv and
+work_precision.json (with the target check) to --out.
+
+    python benchmarks/work_precision.py --out benchmarks/results
+    python benchmarks/work_precision.py --quick
+"""
+
+import argparse
+import csv
+import json
+import time
+from pathlib import Path
+
+import _common as C
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import prkmk_jax as pk
+
+T_END = 10.0
+
+
+def _methods(quick):
+    prkmk = []
+    for name, tableau in (
+        ("SE", pk.symplectic_euler),
+        ("SV", pk.stormer_verlet),
+        ("Lobatto4", pk.lobatto_iiia_iiib4),
+    ):
+        for coords in ("exp", "cayley"):
+            prkmk.append(
+                (
+                    f"PRKMK {name} {coords}",
+                    "prkmk",
+                    C.prkmk_final(C.prkmk_solver(tableau, coords)),
+                    False,
+                )
+            )
+    prkmk.append(
+        (
+            "PRKMK Lobatto4 exp adaptive",
+            "prkmk",
+            C.prkmk_final(
+                C.prkmk_solver(pk.lobatto_iiia_iiib4, adaptive=True), adaptive=True
+            ),
+            True,
+        )
+    )
+    peers = []
+    for name, solver in (
+        ("Tsit5", diffrax.Tsit5()),
+        ("Dopri5", diffrax.Dopri5()),
+        ("Dopri8", diffrax.Dopri8()),
+    ):
+        peers.append(
+            (f"diffrax {name} adaptive", "diffrax", C.diffrax_final(solver, True), True)
+        )
+        peers.append(
+            (f"diffrax {name} fixed", "diffrax", C.diffrax_final(solver, False), False)
+        )
+    if quick:
+        return [prkmk[2], prkmk[-1], peers[0], peers[1]]
+    return prkmk + peers
+
+
+def _sweep(name, adaptive, quick, batch):
+    if quick:
+        return [1e-4, 1e-6] if adaptive else [20, 40]
+    if adaptive:
+        if name.startswith("PRKMK"):
+            return (
+                [1e-4, 1e-6, 1e-8, 1e-10]
+                if batch
+                else [1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10]
+            )
+        return (
+            [1e-3, 1e-5, 1e-7, 1e-9, 1e-11]
+            if batch
+            else [10.0**-k for k in range(3, 13)]
+        )
+    if name.startswith("PRKMK SE"):
+        return [50, 100, 200, 400] if batch else [50, 100, 200, 400, 800, 1600, 3200]
+    return [50, 100, 200, 400] if batch else [50, 100, 200, 400, 800, 1600]
+
+
+def _errors(q, pi, q_ref, pi_ref):
+    att = C.geodesic_distance(q, q_ref)
+    mom = np.linalg.norm(np.asarray(pi) - pi_ref, axis=-1)
+    return float(np.max(att)), float(np.max(mom))
+
+
+def run_regime(regime, quick, repeats):
+    batch = None if regime == "single" else (4 if quick else 1024)
+    n_check = None if batch is None else min(batch, 32)
+    t_end = 1.0 if quick else T_END
+    q0, pi0 = C.initial_conditions(batch, seed=1)
+    if batch is None:
+        q_ref, pi_ref = C.reference(q0, pi0, t_end)
+    else:
+        refs = [C.reference(q0[k], pi0[k], t_end) for k in range(n_check)]
+        q_ref, pi_ref = np.stack([r[0] for r in refs]), np.stack([r[1] for r in refs])
+    inertia = jnp.asarray(C.INERTIA)
+    q0j, pi0j = jnp.asarray(q0), jnp.asarray(pi0)
+    rows = []
+    for name, family, run, adaptive in _methods(quick):
+        fn = run if batch is None else C.batched(run)
+        args = (
+            q0j,
+            pi0j,
+            jnp.asarray(t_end),
+            jnp.asarray(0.1),
+            jnp.asarray(1e-6),
+            inertia,
+        )
+        compiled, compile_s = C.compile_fn(fn, *args)
+        for value in _sweep(name, adaptive, quick, batch is not None):
+            dt, rtol = (0.1, value) if adaptive else (t_end / value, 1e-6)
+            args = (
+                q0j,
+                pi0j,
+                jnp.asarray(t_end),
+                jnp.asarray(dt),
+                jnp.asarray(rtol),
+                inertia,
+            )
+            try:
+                wall, ((q, pi), steps) = C.median_time(compiled, *args, repeats=repeats)
+                ok = bool(np.all(np.isfinite(np.asarray(pi))))
+            except (
+                Exception
+            ) as err:  # an implicit stage that does not converge raises (throw=True)
+                print(f"  {name} at {value}: failed ({type(err).__name__})")
+                wall, q, pi, steps, ok = float("nan"), None, None, 0, False
+            if ok:
+                qc, pic = (
+                    (q, pi)
+                    if batch is None
+                    else (np.asarray(q)[:n_check], np.asarray(pi)[:n_check])
+                )
+                att, mom = _errors(qc, pic, q_ref, pi_ref)
+            else:
+                att = mom = float("nan")
+            row = dict(
+                regime=regime,
+                method=name,
+                family=family,
+                adaptive=adaptive,
+                parameter=value,
+                steps=int(np.max(np.asarray(steps))),
+                wall_s=wall,
+                compile_s=compile_s,
+                attitude_error=att,
+                momentum_error=mom,
+                ok=ok,
+            )
+            rows.append(row)
+            print(
+                f"{regime:6s} {name:30s} {'rtol' if adaptive else 'n':>4s}={value:<8.0e} steps={row['steps']:6d} wall={wall:9.4f}s  att={att:8.1e}  mom={mom:8.1e}",
+                flush=True,
+            )
+    if batch is None:
+        rows += _scipy_rows(q0, pi0, t_end, q_ref, pi_ref, quick, repeats)
+    return rows
+
+
+def _scipy_rows(q0, pi0, t_end, q_ref, pi_ref, quick, repeats):
+    from scipy.integrate import solve_ivp
+
+    rows = []
+    z0 = C.to_vector(q0, pi0)
+    for method in ("DOP853", "RK45"):
+        for rtol in [1e-4, 1e-6] if quick else [10.0**-k for k in range(3, 13)]:
+            walls = []
+            for _ in range(max(repeats, 1)):
+                start = time.perf_counter()
+                sol = solve_ivp(
+                    C.embedding_rhs_np,
+                    (0.0, t_end),
+                    z0,
+                    method=method,
+                    rtol=rtol,
+                    atol=rtol,
+                    args=(C.INERTIA,),
+                )
+                walls.append(time.perf_counter() - start)
+            q, pi = C.from_vector(sol.y[:, -1])
+            att, mom = _errors(q, pi, q_ref, pi_ref)
+            row = dict(
+                regime="single",
+                method=f"SciPy {method}",
+                family="scipy",
+                adaptive=True,
+                parameter=rtol,
+                steps=int(sol.t.size - 1),
+                wall_s=float(np.median(walls)),
+                compile_s=0.0,
+                attitude_error=att,
+                momentum_error=mom,
+                ok=bool(sol.success),
+            )
+            rows.append(row)
+            print(
+                f"single {row['method']:30s} rtol={rtol:<8.0e} steps={row['steps']:6d} wall={row['wall_s']:9.4f}s  att={att:8.1e}  mom={mom:8.1e}",
+                flush=True,
+            )
+    return rows
+
+
+def fastest_at(rows, regime, target):
+    """Per method, the fastest measured run whose errors are both ≤ target."""
+    best = {}
+    for r in rows:
+        if (
+            r["regime"] != regime
+            or not r["ok"]
+            or max(r["attitude_error"], r["momentum_error"]) > target
+        ):
+            continue
+        if r["method"] not in best or r["wall_s"] < best[r["method"]]["wall_s"]:
+            best[r["method"]] = r
+    return best
+
+
+def plot(rows, regime, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5.2), sharex=True)
+    styles = {"prkmk": "-o", "diffrax": "--s", "scipy": ":^"}
+    methods = sorted({r["method"] for r in rows if r["regime"] == regime})
+    for method in methods:
+        pts = sorted(
+            (
+                r
+                for r in rows
+                if r["regime"] == regime and r["method"] == method and r["ok"]
+            ),
+            key=lambda r: r["wall_s"],
+        )
+        if not pts:
+            continue
+        style = styles[pts[0]["family"]]
+        for ax, key in zip(axes, ("attitude_error", "momentum_error")):
+            ax.loglog(
+                [p["wall_s"] for p in pts],
+                [max(p[key], 1e-17) for p in pts],
+                style,
+                ms=4,
+                label=method,
+            )
+    axes[0].set_ylabel("attitude error at T (rad, geodesic on SO(3))")
+    axes[1].set_ylabel("momentum error |Π − Π_ref| at T")
+    for ax in axes:
+        ax.set_xlabel("wall time after compilation (s)")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[1].legend(fontsize=7, ncol=2)
+    what = "one trajectory" if regime == "single" else "a vmapped batch of 1024"
+    fig.suptitle(f"Free rigid body to T = {T_END:g}: work–precision, {what}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--quick", action="store_true", help="tiny sizes, for a smoke test"
+    )
+    parser.add_argument(
+        "--out", default="benchmarks/results", help="folder for PNG/CSV/JSON"
+    )
+    parser.add_argument("--regimes", default="single,batch")
+    args = parser.parse_args(argv)
+    jax.config.update("jax_enable_x64", True)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for regime in args.regimes.split(","):
+        rows += run_regime(
+            regime,
+            args.quick,
+            repeats=1 if args.quick else (5 if regime == "single" else 3),
+        )
+        plot(rows, regime, out / f"work_precision_{regime}.png")
+    with open(out / "work_precision.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    summary = dict(machine=C.machine(), target_error=1e-8, fastest_at_target={})
+    for regime in args.regimes.split(","):
+        best = fastest_at(rows, regime, 1e-8)
+        summary["fastest_at_target"][regime] = {
+            m: dict(wall_s=r["wall_s"], parameter=r["parameter"], steps=r["steps"])
+            for m, r in sorted(best.items(), key=lambda kv: kv[1]["wall_s"])
+        }
+        print(f"\n{regime}: fastest run with attitude and momentum error ≤ 1e-8")
+        for m, r in sorted(best.items(), key=lambda kv: kv[1]["wall_s"]):
+            print(
+                f"  {m:30s} {r['wall_s']:9.4f} s  ({'rtol' if r['adaptive'] else 'n'} = {r['parameter']:.0e}, {r['steps']} steps)"
+            )
+    with open(out / "work_precision.json", "w") as f:
+        json.dump(dict(summary=summary, rows=rows), f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
