@@ -11,18 +11,21 @@ Jacobi elliptic functions (`elliptic_momentum`), in
 `tests/test_benchmark_reference.py`.
 """
 
+import argparse
+import os
+import platform
 import statistics
 import time
+from pathlib import Path
 
 import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.integrate import solve_ivp
-from scipy.special import ellipj, ellipkinc
-
 import prkmk_jax as pk
 from prkmk_jax.scenes import rigid_body as rb
+from scipy.integrate import solve_ivp
+from scipy.special import ellipj, ellipkinc
 
 INERTIA = np.asarray(rb.PAPER_INERTIA)
 MOMENTUM = np.asarray(rb.PAPER_MOMENTUM)
@@ -63,7 +66,7 @@ def to_vector(q, pi):
 
 
 def from_vector(z):
-    z = np.asarray(z)
+    """(Q, Π) from flat 12-vectors (NumPy or JAX arrays)."""
     return z[..., :9].reshape(*z.shape[:-1], 3, 3), z[..., 9:]
 
 
@@ -164,13 +167,13 @@ def prkmk_solver(tableau, coordinates="exp", adaptive=False, root_finder=None):
 FIELD = rb.unreduced_rigid_body(pk.Cotangent(pk.SO3))
 
 
-def prkmk_final(solver, adaptive=False, t_eval=None):
-    """(q0, π0, t1, dt, rtol, inertia) -> (Q, Π, num_steps) by diffeqsolve;
+def _final(term, solver, to_state, split, adaptive, t_eval):
+    """(q0, π0, t1, dt, rtol, inertia) -> ((Q, Π), num_steps) by diffeqsolve;
     dt and rtol are data, so a sweep compiles once. With `t_eval`, values at
-    those times instead of at t1."""
+    those times instead of at t1. `to_state`/`split` convert (Q, Π) to the
+    solver's state and back."""
 
     def run(q0, pi0, t1, dt, rtol, inertia):
-        y0 = pk.BundleElement(pk.SO3(q0), pi0)
         controller = (
             diffrax.PIDController(rtol=rtol, atol=rtol)
             if adaptive
@@ -180,58 +183,51 @@ def prkmk_final(solver, adaptive=False, t_eval=None):
             diffrax.SaveAt(t1=True) if t_eval is None else diffrax.SaveAt(ts=t_eval)
         )
         sol = diffrax.diffeqsolve(
-            pk.PRKMKTerm(FIELD),
+            term,
             solver,
             0.0,
             t1,
             dt,
-            y0,
+            to_state(q0, pi0),
             inertia,
             saveat=saveat,
             stepsize_controller=controller,
             max_steps=MAX_STEPS,
         )
-        q, pi = sol.ys.base.matrix, sol.ys.fiber
-        return (q[-1], pi[-1]) if t_eval is None else (q, pi), sol.stats[
+        q, pi = split(sol.ys)
+        return ((q[-1], pi[-1]) if t_eval is None else (q, pi)), sol.stats[
             "num_accepted_steps"
         ]
 
     return run
+
+
+def prkmk_final(solver, adaptive=False, t_eval=None):
+    """`_final` for a PRKMKSolver on T*SO(3)."""
+    return _final(
+        pk.PRKMKTerm(FIELD),
+        solver,
+        lambda q0, pi0: pk.BundleElement(pk.SO3(q0), pi0),
+        lambda ys: (ys.base.matrix, ys.fiber),
+        adaptive,
+        t_eval,
+    )
 
 
 def diffrax_final(solver, adaptive, t_eval=None):
-    """The same on the embedding with a diffrax Runge–Kutta solver."""
-
-    def run(q0, pi0, t1, dt, rtol, inertia):
-        z0 = jnp.concatenate([q0.reshape(9), pi0])
-        controller = (
-            diffrax.PIDController(rtol=rtol, atol=rtol)
-            if adaptive
-            else diffrax.ConstantStepSize()
-        )
-        saveat = (
-            diffrax.SaveAt(t1=True) if t_eval is None else diffrax.SaveAt(ts=t_eval)
-        )
-        dt0 = None if adaptive else dt
-        sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(embedding_rhs),
-            solver,
-            0.0,
-            t1,
-            dt0,
-            z0,
-            inertia,
-            saveat=saveat,
-            stepsize_controller=controller,
-            max_steps=MAX_STEPS,
-        )
-        z = sol.ys
-        q, pi = z[..., :9].reshape(*z.shape[:-1], 3, 3), z[..., 9:]
-        return (q[-1], pi[-1]) if t_eval is None else (q, pi), sol.stats[
-            "num_accepted_steps"
-        ]
-
-    return run
+    """`_final` for a diffrax Runge–Kutta solver on the embedding ℝ⁹×ℝ³; an
+    adaptive run chooses its own first step."""
+    run = _final(
+        diffrax.ODETerm(embedding_rhs),
+        solver,
+        lambda q0, pi0: jnp.concatenate([q0.reshape(9), pi0]),
+        from_vector,
+        adaptive,
+        t_eval,
+    )
+    if not adaptive:
+        return run
+    return lambda q0, pi0, t1, dt, rtol, inertia: run(q0, pi0, t1, None, rtol, inertia)
 
 
 def batched(run):
@@ -259,14 +255,31 @@ def median_time(compiled, *args, repeats=5):
 
 
 def machine():
-    import platform
-
-    import jax as _jax
-
     return dict(
         platform=platform.platform(),
         processor=platform.processor() or platform.machine(),
-        cpus=__import__("os").cpu_count(),
-        jax=_jax.__version__,
-        devices=[str(d) for d in _jax.devices()],
+        cpus=os.cpu_count(),
+        jax=jax.__version__,
+        devices=[str(d) for d in jax.devices()],
     )
+
+
+def cli(doc, argv, add_arguments=None):
+    """The scripts' shared command line (--quick, --out): parses `argv`,
+    enables float64 and creates the output folder; returns (args, out)."""
+    parser = argparse.ArgumentParser(
+        description=doc, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--quick", action="store_true", help="tiny sizes, for a smoke test"
+    )
+    parser.add_argument(
+        "--out", default="benchmarks/results", help="folder for PNG/CSV/JSON"
+    )
+    if add_arguments is not None:
+        add_arguments(parser)
+    args = parser.parse_args(argv)
+    jax.config.update("jax_enable_x64", True)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    return args, out

@@ -27,15 +27,14 @@ import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
-
 import prkmk_jax as pk
 from prkmk_jax.scenes import rigid_body as rb
 
+from _common import compile_fn
+
 
 def _compile(fn, *args):
-    start = time.perf_counter()
-    compiled = jax.jit(fn).lower(*args).compile()
-    compile_s = time.perf_counter() - start
+    compiled, compile_s = compile_fn(fn, *args)
     jax.block_until_ready(compiled(*args))  # warm-up
     return compiled, compile_s
 

@@ -15,18 +15,15 @@ reached in no more wall time, divided by the PRKMK run's error.
     python benchmarks/long_time.py --quick
 """
 
-import argparse
 import csv
 import json
-from pathlib import Path
 
-import _common as C
 import diffrax
-import jax
 import jax.numpy as jnp
 import numpy as np
-
 import prkmk_jax as pk
+
+import _common as C
 
 KEYS = ("energy", "momentum_norm", "spatial_momentum", "orthogonality")
 
@@ -71,11 +68,7 @@ def _prkmk_fixed(tableau, t_end):
 
 def _dense(final_factory, solver, t_end, adaptive):
     ts = jnp.linspace(0.0, t_end, int(t_end) + 1)
-    run = (
-        final_factory(solver, adaptive, t_eval=ts)
-        if final_factory is C.diffrax_final
-        else C.prkmk_final(solver, adaptive, t_eval=ts)
-    )
+    run = final_factory(solver, adaptive, t_eval=ts)
 
     def make(param):
         dt, rtol = (0.1, param) if adaptive else (param, 1e-6)
@@ -112,7 +105,7 @@ def _runs(quick, t_end):
                 "prkmk",
                 "rtol",
                 r,
-                _dense(None, solver, t_end, True),
+                _dense(C.prkmk_final, solver, t_end, True),
             )
             for r in [1e-6, 1e-8, 1e-10]
         ]
@@ -208,15 +201,7 @@ def plot(rows, path, t_end):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--out", default="benchmarks/results")
-    args = parser.parse_args(argv)
-    jax.config.update("jax_enable_x64", True)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    args, out = C.cli(__doc__, argv)
     t_end = 20.0 if args.quick else 1000.0
     repeats = 1 if args.quick else 3
     q0, pi0 = C.initial_conditions(None)

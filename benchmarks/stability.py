@@ -21,19 +21,17 @@ constant steps on the embedding ℝ⁹×ℝ³.
     python benchmarks/stability.py --quick
 """
 
-import argparse
 import csv
 import json
-from pathlib import Path
 
-import _common as C
 import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-
 import prkmk_jax as pk
+
+import _common as C
 
 H = 0.1
 SCENES = {"fast spin": C.INERTIA, "unequal inertia": np.array([1.0, 0.1, 0.01])}
@@ -123,15 +121,7 @@ def classify(q, pi, converged, inertia):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--out", default="benchmarks/results")
-    args = parser.parse_args(argv)
-    jax.config.update("jax_enable_x64", True)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    args, out = C.cli(__doc__, argv)
     t_end = 20.0 if args.quick else 1000.0
     n, every = int(round(t_end / H)), int(round(1.0 / H))
     hw_targets = np.geomspace(

@@ -16,16 +16,14 @@
     python benchmarks/throughput.py --quick
 """
 
-import argparse
 import json
-from pathlib import Path
 
-import _common as C
 import diffrax
 import jax
 import jax.numpy as jnp
-
 import prkmk_jax as pk
+
+import _common as C
 
 H = 0.01
 
@@ -191,16 +189,11 @@ def gradient_cost(quick, repeats):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    args, out = C.cli(
+        __doc__,
+        argv,
+        lambda p: p.add_argument("--parts", default="throughput,compile,gradient"),
     )
-    parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--out", default="benchmarks/results")
-    parser.add_argument("--parts", default="throughput,compile,gradient")
-    args = parser.parse_args(argv)
-    jax.config.update("jax_enable_x64", True)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     repeats = 1 if args.quick else 3
     result = dict(machine=C.machine())
     parts = args.parts.split(",")

@@ -21,19 +21,16 @@ work_precision.json (with the target check) to --out.
     python benchmarks/work_precision.py --quick
 """
 
-import argparse
 import csv
 import json
 import time
-from pathlib import Path
 
-import _common as C
 import diffrax
-import jax
 import jax.numpy as jnp
 import numpy as np
-
 import prkmk_jax as pk
+
+import _common as C
 
 T_END = 10.0
 
@@ -282,20 +279,9 @@ def plot(rows, regime, path):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    args, out = C.cli(
+        __doc__, argv, lambda p: p.add_argument("--regimes", default="single,batch")
     )
-    parser.add_argument(
-        "--quick", action="store_true", help="tiny sizes, for a smoke test"
-    )
-    parser.add_argument(
-        "--out", default="benchmarks/results", help="folder for PNG/CSV/JSON"
-    )
-    parser.add_argument("--regimes", default="single,batch")
-    args = parser.parse_args(argv)
-    jax.config.update("jax_enable_x64", True)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     rows = []
     for regime in args.regimes.split(","):
         rows += run_regime(

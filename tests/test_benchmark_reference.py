@@ -18,13 +18,17 @@ CASES = [
 ]
 
 
+def _initial(seed):
+    """(Q₀, Π₀) of a case: the paper's (seed None) or one of a random batch."""
+    if seed is None:
+        return _common.initial_conditions(None)
+    qs, pis = _common.initial_conditions(4, seed=seed)
+    return qs[seed], pis[seed]
+
+
 @pytest.mark.parametrize("seed, inertia", CASES)
 def test_dop853_reference_matches_elliptic_solution(seed, inertia):
-    if seed is None:
-        q0, pi0 = _common.initial_conditions(None)
-    else:
-        qs, pis = _common.initial_conditions(4, seed=seed)
-        q0, pi0 = qs[seed], pis[seed]
+    q0, pi0 = _initial(seed)
     ts = np.linspace(0.0, 20.0, 41)
     q, pi = _common.reference(q0, pi0, 20.0, inertia=inertia, t_eval=ts)
     exact = _common.elliptic_momentum(pi0, inertia, ts)
@@ -43,11 +47,7 @@ def test_both_elliptic_branches_are_exercised():
     """|Π|² above and below 2H·I_mid (dn on the largest / smallest axis)."""
     sides = set()
     for seed, inertia in CASES:
-        pi0 = (
-            _common.initial_conditions(None)[1]
-            if seed is None
-            else _common.initial_conditions(4, seed=seed)[1][seed]
-        )
+        _, pi0 = _initial(seed)
         two_h = pi0 @ (pi0 / inertia)
         sides.add(bool(pi0 @ pi0 > two_h * np.sort(inertia)[1]))
     assert sides == {True, False}
