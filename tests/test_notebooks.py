@@ -1,0 +1,39 @@
+"""The notebooks run top to bottom (at the small size CI asks for with
+PRKMK_NOTEBOOK_SMALL=1) and are committed with the outputs of a full run."""
+
+from pathlib import Path
+
+import nbformat
+import pytest
+from nbclient import NotebookClient
+
+NOTEBOOK_DIR = Path(__file__).resolve().parents[1] / "notebooks"
+NOTEBOOKS = sorted(NOTEBOOK_DIR.glob("*.ipynb"))
+EXPECTED = ["01_paper_section5", "02_fit_inertia", "03_batch_tumbling", "04_where_methods_fail"]
+
+
+def test_the_four_notebooks_are_there():
+    assert [p.stem for p in NOTEBOOKS] == EXPECTED
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
+def test_committed_with_outputs_question_and_answer(path):
+    nb = nbformat.read(path, as_version=4)
+    nbformat.validate(nb)
+    first, code = nb.cells[0], [c for c in nb.cells if c.cell_type == "code"]
+    assert first.cell_type == "markdown" and "**Question.**" in first.source
+    assert any(c.cell_type == "markdown" and c.source.startswith("## Answer") for c in nb.cells)
+    # Every code cell ran, in order, without an error; the last one prints the answer.
+    assert [c.execution_count for c in code] == list(range(1, len(code) + 1))
+    assert not [o for c in code for o in c.outputs if o.output_type == "error"]
+    assert any(o.output_type == "stream" and o.text.strip() for o in code[-1].outputs)
+    assert any("image/png" in o.get("data", {}) for c in code for o in c.outputs)
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
+def test_notebook_runs(path, monkeypatch):
+    monkeypatch.setenv("PRKMK_NOTEBOOK_SMALL", "1")
+    monkeypatch.setenv("MPLBACKEND", "Agg")
+    nb = nbformat.read(path, as_version=4)
+    client = NotebookClient(nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOK_DIR)}})
+    client.execute()  # raises CellExecutionError, with the cell and traceback, if any cell fails
