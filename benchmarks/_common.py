@@ -53,11 +53,8 @@ def embedding_rhs_np(t, z, inertia):
     return np.concatenate([(q @ _hat_np(omega)).ravel(), np.cross(pi, omega)])
 
 
-def embedding_rhs(t, z, inertia):
-    """The same field in JAX, for diffrax's ODETerm (a flat 12-vector)."""
-    q, pi = z[:9].reshape(3, 3), z[9:]
-    omega = pi / inertia
-    return jnp.concatenate([(q @ pk.hat(omega)).ravel(), jnp.cross(pi, omega)])
+embedding_rhs = rb.embedding_field
+"""The same field in JAX, for diffrax's ODETerm (a flat 12-vector)."""
 
 
 def to_vector(q, pi):

@@ -5,6 +5,8 @@
 * The unreduced rigid body (§3.2) on T*SO(n), body form: g' = gΩ, Π' = [Π, Ω]
   (Π × Ω for n = 3), on `Cotangent`/left `Semidirect` (where it is the
   generator (Ω, 0)) or on `DirectProduct` (generator (Ω, [Π, Ω])).
+* The same body on the embedding ℝ⁹×ℝ³ (`embedding_field`), for Euclidean
+  solvers to be compared with.
 
 The inertia is passed as `args` (differentiable, no recompiles): for SO(3) a
 3-vector I acting on the vector form of M; for SO(n) a vector J of n
@@ -17,7 +19,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ..bundles import AbstractSemidirect, BundleElement, Cartesian, DirectProduct
-from ..groups import SO3, SOn, vee
+from ..groups import SO3, SOn, hat, vee
 
 PAPER_INERTIA = np.array([7 / 8, 5 / 8, 1 / 4])
 """Eq. (5.2), acting on the vector form of M."""
@@ -75,6 +77,22 @@ def angular_velocity(momentum: Array, inertia: Array) -> Array:
     if momentum.ndim >= 2 and momentum.shape[-1] == momentum.shape[-2] == inertia.shape[-1]:
         return momentum / (inertia[..., :, None] + inertia[..., None, :])
     return momentum / inertia
+
+
+def embedding_field(t, z: Float[Array, "12"], inertia: Float[Array, "3"] | Float[Array, "3 3"]) -> Float[Array, "12"]:
+    """The free rigid body on the embedding ℝ⁹×ℝ³, for Euclidean solvers
+    (`diffrax.ODETerm`) to be compared with: z is Q flattened row-major, then
+    Π; Q' = QΩ̂, Π' = Π × Ω, Ω = I⁻¹Π. `inertia` is the principal moments (3,)
+    or a symmetric positive-definite tensor (3, 3). Nothing keeps Q
+    orthogonal; that is what such a comparison measures."""
+    inertia = jnp.asarray(inertia)
+    if inertia.shape not in ((3,), (3, 3)):
+        raise ValueError(f"inertia must have shape (3,) or (3, 3), got {inertia.shape}.")
+    if z.shape != (12,):
+        raise ValueError(f"the embedded state is (Q row-major, Π) of shape (12,), got {z.shape}.")
+    q, pi = z[:9].reshape(3, 3), z[9:]
+    omega = pi / inertia if inertia.ndim == 1 else jnp.linalg.solve(inertia, pi)
+    return jnp.concatenate([(q @ hat(omega)).ravel(), jnp.cross(pi, omega)])
 
 
 def _commutator_or_cross(a, b):
