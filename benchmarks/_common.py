@@ -232,6 +232,31 @@ def batched(run):
     return jax.vmap(run, in_axes=(0, 0, None, None, None, None))
 
 
+# --- figures -------------------------------------------------------------------------
+FAMILY_STYLES = {"prkmk": "-o", "diffrax": "--s", "scipy": ":^"}
+
+
+def plot_against_wall(axes, keys, rows):
+    """One log–log curve per method on each axis: `rows[key]` against
+    `rows["wall_s"]` for the successful runs (``ok``), in order of cost;
+    values below 1e-17 are drawn at 1e-17."""
+    for method in sorted({r["method"] for r in rows}):
+        pts = sorted(
+            (r for r in rows if r["method"] == method and r["ok"]),
+            key=lambda r: r["wall_s"],
+        )
+        if not pts:
+            continue
+        for ax, key in zip(axes, keys):
+            ax.loglog(
+                [p["wall_s"] for p in pts],
+                [max(p[key], 1e-17) for p in pts],
+                FAMILY_STYLES[pts[0]["family"]],
+                ms=4,
+                label=method,
+            )
+
+
 # --- timing --------------------------------------------------------------------------
 def compile_fn(fn, *args):
     """jit-compile; returns (compiled, compile seconds)."""

@@ -170,22 +170,7 @@ def plot(rows, path, t_end):
         spatial_momentum="max |QΠ − Q₀Π₀| / |Π₀|",
         orthogonality="max ‖QᵀQ − I‖_F",
     )
-    for method in sorted({r["method"] for r in rows}):
-        pts = sorted(
-            (r for r in rows if r["method"] == method and r["ok"]),
-            key=lambda r: r["wall_s"],
-        )
-        if not pts:
-            continue
-        style = "-o" if pts[0]["family"] == "prkmk" else "--s"
-        for ax, key in zip(axes.ravel(), KEYS):
-            ax.loglog(
-                [p["wall_s"] for p in pts],
-                [max(p[key], 1e-17) for p in pts],
-                style,
-                ms=4,
-                label=method,
-            )
+    C.plot_against_wall(axes.ravel(), KEYS, rows)
     for ax, key in zip(axes.ravel(), KEYS):
         ax.set_ylabel(labels[key])
         ax.grid(True, which="both", alpha=0.3)

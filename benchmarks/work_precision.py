@@ -243,28 +243,11 @@ def plot(rows, regime, path):
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(13, 5.2), sharex=True)
-    styles = {"prkmk": "-o", "diffrax": "--s", "scipy": ":^"}
-    methods = sorted({r["method"] for r in rows if r["regime"] == regime})
-    for method in methods:
-        pts = sorted(
-            (
-                r
-                for r in rows
-                if r["regime"] == regime and r["method"] == method and r["ok"]
-            ),
-            key=lambda r: r["wall_s"],
-        )
-        if not pts:
-            continue
-        style = styles[pts[0]["family"]]
-        for ax, key in zip(axes, ("attitude_error", "momentum_error")):
-            ax.loglog(
-                [p["wall_s"] for p in pts],
-                [max(p[key], 1e-17) for p in pts],
-                style,
-                ms=4,
-                label=method,
-            )
+    C.plot_against_wall(
+        axes,
+        ("attitude_error", "momentum_error"),
+        [r for r in rows if r["regime"] == regime],
+    )
     axes[0].set_ylabel("attitude error at T (rad, geodesic on SO(3))")
     axes[1].set_ylabel("momentum error |Π − Π_ref| at T")
     for ax in axes:
