@@ -57,14 +57,9 @@ class BundleElement(eqx.Module):
     second group element for `Cartesian`."""
 
 
-def _solve_shifted_ad(base, u, v, alpha):
-    """w = (I + α ad_u)⁻¹ v, by a dense solve on the flattened base algebra."""
-    nd = base.algebra_ndim
-    if u.ndim > nd:
-        return jax.vmap(lambda uu, vv: _solve_shifted_ad(base, uu, vv, alpha))(u, v)
-    ad = jax.jacfwd(lambda w: base.bracket(u, w))(v).reshape(v.size, v.size)
-    eye = jnp.eye(v.size, dtype=v.dtype)
-    return jnp.linalg.solve(eye + alpha * ad, v.reshape(-1)).reshape(v.shape)
+def _multiply_in_form(bundle, increment, y, form):
+    """y·increment (body form) or increment·y (space form)."""
+    return bundle.multiply(y, increment) if form == "body" else bundle.multiply(increment, y)
 
 
 def _dual_lift(fn, u, v, x, y):
@@ -156,6 +151,16 @@ class AbstractBundle(eqx.Module):
     def dcayley_inv(self, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
         """Exact dcay⁻¹_U(X)."""
 
+    # --- the update of a PRKMK step ------------------------------------------------
+    @abc.abstractmethod
+    def exp_multiply(self, U: AlgebraPair, y: BundleElement, form: Literal["space", "body"]) -> BundleElement:
+        """y·exp(U) (`form="body"`) or exp(U)·y (`"space"`), without forming
+        exp(U) where the product only needs its action."""
+
+    @abc.abstractmethod
+    def cayley_multiply(self, U: AlgebraPair, y: BundleElement, form: Literal["space", "body"]) -> BundleElement:
+        """y·cay(U) or cay(U)·y, as `exp_multiply`."""
+
 
 class DirectProduct(AbstractBundle):
     """TG ≅ G × g, the direct product (paper §2.1, Table 2.1)."""
@@ -187,6 +192,12 @@ class DirectProduct(AbstractBundle):
     def dcayley_inv(self, U, X):
         return self.base.dcayley_inv(U[0], X[0]), X[1]
 
+    def exp_multiply(self, U, y, form):
+        return _multiply_in_form(self, self.exp(U), y, form)
+
+    def cayley_multiply(self, U, y, form):
+        return _multiply_in_form(self, self.cayley(U), y, form)
+
 
 class Cartesian(AbstractBundle):
     """TG ≅ G × G, the Cartesian product (paper §2.3, Table 2.3)."""
@@ -217,6 +228,12 @@ class Cartesian(AbstractBundle):
 
     def dcayley_inv(self, U, X):
         return self.base.dcayley_inv(U[0], X[0]), self.base.dcayley_inv(U[1], X[1])
+
+    def exp_multiply(self, U, y, form):
+        return _multiply_in_form(self, self.exp(U), y, form)
+
+    def cayley_multiply(self, U, y, form):
+        return _multiply_in_form(self, self.cayley(U), y, form)
 
 
 class AbstractSemidirect(AbstractBundle):
@@ -265,7 +282,7 @@ class AbstractSemidirect(AbstractBundle):
 
     def _cayley_fiber(self, u, v):
         # (cay(−ad_u) − I)/(−ad_u) = (I + ½ad_u)⁻¹ (left); (I − ½ad_u)⁻¹ (right).
-        return _solve_shifted_ad(self.base, u, v, -0.5 * self._sign())
+        return self.base.inverse_shifted_ad(u, v, -0.5 * self._sign())
 
     def cayley(self, U):
         u, v = U
@@ -287,6 +304,30 @@ class AbstractSemidirect(AbstractBundle):
             z = y + br(x, w)
             y_v = z - 0.5 * br(u, z) - 0.5 * br(x_v, w)
         return x_v, y_v
+
+    def exp_multiply(self, U, y, form):
+        u, v = U
+        base = self.base
+        fiber_part = base.dexp(self._sign() * u, v)
+        return self._multiply_increment(y, base.exp(u), fiber_part, lambda x, sign: base.exp_adjoint(sign * u, x), form)
+
+    def cayley_multiply(self, U, y, form):
+        u, v = U
+        base = self.base
+        fiber_part = self._cayley_fiber(u, v)
+        return self._multiply_increment(y, base.cayley(u), fiber_part, lambda x, sign: base.cayley_adjoint(sign * u, x), form)
+
+    def _multiply_increment(self, y, g, w, act, form):
+        """The product (multiply) of y with the increment (g, w), where g is
+        exp(u) or cay(u) and act(x, ±1) = Ad_{g^{±1}} x is computed without g
+        (g itself only enters the base, which XLA drops when unused)."""
+        left = self.trivialization == "left"
+        if form == "body":  # y·(g, w)
+            fiber = act(y.fiber, -1.0) + w if left else y.fiber + y.base.adjoint(w)
+            return BundleElement(y.base.multiply(g), fiber)
+        # (g, w)·y
+        fiber = y.base.inverse().adjoint(w) + y.fiber if left else w + act(y.fiber, 1.0)
+        return BundleElement(g.multiply(y.base), fiber)
 
 
 class Semidirect(AbstractSemidirect):

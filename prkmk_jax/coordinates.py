@@ -34,6 +34,10 @@ class AbstractCoordinates(eqx.Module):
         """f(U)."""
 
     @abc.abstractmethod
+    def apply(self, bundle: AbstractBundle, U: AlgebraPair, y: BundleElement, form: Literal["space", "body"]) -> BundleElement:
+        """y·f(U) (`form="body"`) or f(U)·y (`"space"`)."""
+
+    @abc.abstractmethod
     def inverse_differential(self, bundle: AbstractBundle, U: AlgebraPair, X: AlgebraPair, method_order: int) -> AlgebraPair:
         """df⁻¹_U(X), truncated as `resolve_truncation(method_order)` says."""
 
@@ -71,6 +75,9 @@ class Exp(AbstractCoordinates):
 
     def map(self, bundle, U):
         return bundle.exp(U)
+
+    def apply(self, bundle, U, y, form):
+        return bundle.exp_multiply(U, y, form)
 
     def inverse_differential(self, bundle, U, X, method_order):
         q = self.resolve_truncation(method_order)
@@ -112,6 +119,10 @@ class Cayley(AbstractCoordinates):
     def map(self, bundle, U):
         self.check_bundle(bundle)
         return bundle.cayley(U)
+
+    def apply(self, bundle, U, y, form):
+        self.check_bundle(bundle)
+        return bundle.cayley_multiply(U, y, form)
 
     def inverse_differential(self, bundle, U, X, method_order):
         self.check_bundle(bundle)

@@ -18,12 +18,14 @@ fixed-point iteration (or any optimistix root finder) to `rtol`/`atol` within
 `max_iterations`. Non-convergence is returned as a `diffrax.RESULTS` value.
 """
 
+import functools
 from collections.abc import Callable
 from typing import Any, Literal
 
 import diffrax
 import equinox as eqx
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
@@ -58,13 +60,6 @@ def stage_blocks(tableau: PartitionedTableau) -> list[tuple[tuple[int, ...], boo
 
 def _tree_scale(alpha, tree):
     return jax.tree.map(lambda x: alpha * x, tree)
-
-
-def _default_float_max_norm(x):
-    # FixedPointIteration starts its error state as jnp.array(inf), i.e. in the
-    # default float dtype; returning the norm in that dtype keeps its loop
-    # state type-stable for float32 states under jax_enable_x64.
-    return jnp.asarray(optx.max_norm(x), jnp.result_type(float))
 
 
 class PRKMK(eqx.Module):
@@ -119,10 +114,7 @@ class PRKMK(eqx.Module):
     # --- pieces of Algorithm 4.2 ----------------------------------------------------
     def apply_increment(self, U: AlgebraPair, y: BundleElement) -> BundleElement:
         """f(U)·y (space form) or y·f(U) (body form)."""
-        f_of_u = self.coordinates.map(self.bundle, U)
-        if self.form == "space":
-            return self.bundle.multiply(f_of_u, y)
-        return self.bundle.multiply(y, f_of_u)
+        return self.coordinates.apply(self.bundle, U, y, self.form)
 
     def slope(self, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
         """U' for the generator X at the point reached by the increment U:
@@ -172,62 +164,69 @@ class PRKMK(eqx.Module):
         dtype = jnp.result_type(*jax.tree.leaves(y))
         dt = jnp.asarray(dt, dtype)
         t = jnp.asarray(t, dtype)
-        a1, a2 = jnp.asarray(tab.a_first, dtype), jnp.asarray(tab.a_second, dtype)
-        c = jnp.asarray(tab.c_first, dtype)
         zeros = self.bundle.algebra_zeros(y)
-        s = tab.num_stages
 
         def field(tt, Y):
             return self.generator(vector_field, tt, Y, args)
-        slopes = jax.tree.map(lambda z: jnp.zeros((s,) + z.shape, z.dtype), zeros)
 
-        def stage_slopes(idx, slopes):
+        def stage_slope(i, first, second):
             # U_i = h (Σ_j a¹_ij K_j, Σ_j a²_ij L_j), Y_i = f(U_i)⊙yₙ, slope_i = df⁻¹(X_i).
-            idx = jnp.asarray(idx)
-            u = dt * jnp.tensordot(a1[idx], slopes[0], axes=1)
-            v = dt * jnp.tensordot(a2[idx], slopes[1], axes=1)
+            # The sums run over the tableau's nonzero entries only (static
+            # numbers), so XLA fuses them with the stage's arithmetic.
+            u = _static_combination(dt, tab.a_first[i], first, zeros[0])
+            v = _static_combination(dt, tab.a_second[i], second, zeros[1])
+            tt = t + float(tab.c_first[i]) * dt
+            if u is None and v is None:
+                return field(tt, y)  # U_i = 0: Y_i = yₙ and df⁻¹_0 = I
+            U = (zeros[0] if u is None else u, zeros[1] if v is None else v)
+            return self.slope(U, field(tt, self.apply_increment(U, y)))
 
-            def one(uu, vv, tt):
-                return self.slope((uu, vv), field(tt, self.apply_increment((uu, vv), y)))
-
-            return jax.vmap(one)(u, v, t + c[idx] * dt)
-
+        first: list = [None] * tab.num_stages
+        second: list = [None] * tab.num_stages
         result = RESULTS.successful
         iterations = jnp.array(0, jnp.int32)
         initial_guess = None
         for idx, implicit in stage_blocks(tab):
             if not implicit:
-                block = stage_slopes(idx, slopes)
-            else:
-                if initial_guess is None:
-                    # df⁻¹_0 = I: the slope at U = 0 is the field at yₙ.
-                    initial_guess = field(t, y)
-                guess = jax.tree.map(lambda x: jnp.broadcast_to(x, (len(idx),) + x.shape), initial_guess)
+                for i in idx:
+                    first[i], second[i] = stage_slope(i, first, second)
+                continue
+            if initial_guess is None:
+                # df⁻¹_0 = I: the slope at U = 0 is the field at yₙ.
+                initial_guess = field(t, y)
 
-                def fixed_point_fn(block_slopes, _, idx=idx):
-                    full = jax.tree.map(lambda f, b: f.at[jnp.asarray(idx)].set(b), slopes, block_slopes)
-                    return stage_slopes(idx, full)
+            def block_slopes(block, idx=idx):
+                trial_first, trial_second = list(first), list(second)
+                for i, (k, l) in zip(idx, block):
+                    trial_first[i], trial_second[i] = k, l
+                return tuple(stage_slope(i, trial_first, trial_second) for i in idx)
 
-                block, block_result, n = self._solve(fixed_point_fn, guess, dtype)
-                result = RESULTS.where(result == RESULTS.successful, block_result, result)
-                iterations = iterations + n
-            slopes = jax.tree.map(lambda f, b: f.at[jnp.asarray(idx)].set(b), slopes, block)
+            guess = tuple(initial_guess for _ in idx)
+            block, block_result, n = self._solve(block_slopes, guess, dtype)
+            result = RESULTS.where(result == RESULTS.successful, block_result, result)
+            iterations = iterations + n
+            for i, (k, l) in zip(idx, block):
+                first[i], second[i] = k, l
 
-        b1, b2 = jnp.asarray(tab.b_first, dtype), jnp.asarray(tab.b_second, dtype)
-        u_next = (dt * jnp.tensordot(b1, slopes[0], axes=1), dt * jnp.tensordot(b2, slopes[1], axes=1))
+        u_next = _static_combination(dt, tab.b_first, first, zeros[0])
+        v_next = _static_combination(dt, tab.b_second, second, zeros[1])
+        u_next = (zeros[0] if u_next is None else u_next, zeros[1] if v_next is None else v_next)
         y_next = self.apply_increment(u_next, y)
         finite = jnp.all(jnp.array([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(y_next)]))
         result = RESULTS.where((result == RESULTS.successful) & ~finite, RESULTS.nonfinite, result)
         return y_next, u_next, result, iterations
 
-    def _solve(self, fn, guess, dtype):
+    def _solve(self, block_slopes, guess, dtype):
+        """Solve block_slopes(K) = K for the slopes K of one implicit block;
+        returns (K, result, iterations)."""
         eps = float(jnp.finfo(dtype).eps)
         default_tol = max(1e-12, 50 * eps)
         rtol = default_tol if self.rtol is None else self.rtol
         atol = default_tol if self.atol is None else self.atol
         solver = self.root_finder
         if solver is None:
-            solver = optx.FixedPointIteration(rtol=rtol, atol=atol, norm=_default_float_max_norm)
+            return _fixed_point_iteration(block_slopes, guess, rtol, atol, self.max_iterations, dtype)
+        fn = lambda z, _: block_slopes(z)  # noqa: E731
         if isinstance(solver, optx.AbstractFixedPointSolver):
             sol = optx.fixed_point(fn, solver, guess, max_steps=self.max_iterations, throw=False)
         else:
@@ -235,3 +234,60 @@ class PRKMK(eqx.Module):
                 lambda z, a: jax.tree.map(jnp.subtract, fn(z, a), z), solver, guess, max_steps=self.max_iterations, throw=False
             )
         return sol.value, RESULTS.promote(sol.result), sol.stats["num_steps"].astype(jnp.int32)
+
+
+def _static_combination(dt, coefficients, slopes, zero):
+    """dt·Σ_j coefficients[j]·slopes[j] over the nonzero (static) coefficients,
+    or None when all are zero."""
+    acc = None
+    for c, slope in zip(coefficients, slopes):
+        if c == 0:
+            continue
+        term = slope if c == 1 else jnp.asarray(c, zero.dtype) * slope
+        acc = term if acc is None else acc + term
+    return None if acc is None else dt * acc
+
+
+def _fixed_point_iteration(fn, guess, rtol, atol, max_iterations, dtype):
+    """z ← fn(z) from `guess` until max|zₖ₊₁ − zₖ|/(atol + rtol|zₖ₊₁|) < 1
+    (the criterion of `optx.FixedPointIteration` with `optx.max_norm`), at most
+    `max_iterations` times. Returns (z, result, iterations).
+
+    A bare `lax.while_loop` carrying only the iterate, its error and a counter:
+    under `vmap` every carried value costs a select per iteration, so this
+    carries no more. Derivatives come from the implicit function theorem
+    (`jax.lax.custom_root`): the tangent system (I − ∂fn)ż = ∂fn/∂θ·θ̇ is
+    solved densely, which is cheap for the few stages × algebra dimensions of
+    a block, and is transposable for reverse mode.
+    """
+
+    def relative_change(new, old):
+        ratios = [jnp.max(jnp.abs(o - n) / (atol + rtol * jnp.abs(n))) for n, o in zip(jax.tree.leaves(new), jax.tree.leaves(old))]
+        return functools.reduce(jnp.maximum, ratios)
+
+    def solve(_residual, z0):
+        def keep_going(carry):
+            _, error, n = carry
+            return (error >= 1) & (n < max_iterations)
+
+        def iterate(carry):
+            z, _, n = carry
+            new = fn(z)
+            return new, relative_change(new, z), n + 1
+
+        z, error, n = jax.lax.while_loop(keep_going, iterate, (z0, jnp.asarray(jnp.inf, dtype), jnp.array(0, jnp.int32)))
+        # The auxiliary outputs are returned as floats: custom_root gives
+        # them zero tangents of their own dtype, which must be inexact.
+        # NaN never compares below 1, so a non-finite iterate ends here too.
+        return z, (error, n.astype(dtype))
+
+    def tangent_solve(linear_residual, rhs):
+        flat, unflatten = jax.flatten_util.ravel_pytree(rhs)
+        matrix = jax.jacfwd(lambda x: jax.flatten_util.ravel_pytree(linear_residual(unflatten(x)))[0])(jnp.zeros_like(flat))
+        return unflatten(jnp.linalg.solve(matrix, flat))
+
+    residual = lambda z: jax.tree.map(jnp.subtract, fn(z), z)  # noqa: E731
+    z, (error, n) = jax.lax.custom_root(residual, guess, solve, tangent_solve, has_aux=True)
+    error, n = jax.lax.stop_gradient((error, n))
+    result = RESULTS.where(error < 1, RESULTS.successful, RESULTS.nonlinear_max_steps_reached)
+    return z, result, n.astype(jnp.int32)

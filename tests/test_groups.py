@@ -200,3 +200,48 @@ def test_bundle_element_checks():
         pk.DirectProduct("SO3")
     with pytest.raises(ValueError, match="3, 3"):
         pk.SO3(jnp.eye(4))
+
+
+# --- the actions a PRKMK step uses instead of forming f(U) ------------------------------
+@pytest.mark.parametrize("name", ["SO3", "SO4", "R3"])
+@given(a=vectors6, b=vectors6)
+def test_adjoint_of_exp_and_cayley_act_without_the_matrix(name, a, b):
+    """exp_adjoint/cayley_adjoint agree with forming exp(u)/cay(u) and acting."""
+    group, alg = BASES[name]
+    u, x = alg(a), alg(b)
+    _close(group.exp_adjoint(u, x), group.exp(u).adjoint(x))
+    _close(group.cayley_adjoint(u, x), group.cayley(u).adjoint(x))
+
+
+@pytest.mark.parametrize("name", ["SO3", "SO4", "R3"])
+@pytest.mark.parametrize("alpha", [0.5, -0.5, 2.0])
+@given(a=vectors6, b=vectors6)
+def test_inverse_shifted_ad_solves_the_linear_system(name, alpha, a, b):
+    """w = (I + α ad_u)⁻¹ v satisfies w + α[u, w] = v."""
+    group, alg = BASES[name]
+    u, v = alg(a), alg(b)
+    w = group.inverse_shifted_ad(u, v, alpha)
+    _close(w + alpha * group.bracket(u, w), v, tol=1e-11)
+
+
+def test_inverse_shifted_ad_and_exp_adjoint_broadcast_batches():
+    u = jnp.asarray(np.random.default_rng(1).normal(size=(4, 5, 3)))
+    v = jnp.asarray(np.random.default_rng(2).normal(size=(4, 5, 3)))
+    w = pk.SO3.inverse_shifted_ad(u, v, 0.5)
+    _close(w[2, 3], pk.SO3.inverse_shifted_ad(u[2, 3], v[2, 3], 0.5))
+    _close(pk.SO3.exp_adjoint(u, v)[1, 4], pk.SO3.exp(u[1, 4]).adjoint(v[1, 4]))
+
+
+@pytest.mark.parametrize("name", BUNDLES)
+@pytest.mark.parametrize("form", ["space", "body"])
+@pytest.mark.parametrize("coordinates", ["exp", "cayley"])
+def test_apply_increment_equals_the_group_product(name, form, coordinates):
+    """coordinates.apply(bundle, U, y, form) is y·f(U) (body) or f(U)·y (space)."""
+    bundle = BUNDLES[name]
+    rng = np.random.default_rng(4)
+    y = element(bundle, rng.normal(size=6), rng.normal(size=6))
+    U = bundle_algebra(bundle, 0.7 * rng.normal(size=6), rng.normal(size=6))
+    coords = pk.Exp() if coordinates == "exp" else pk.Cayley()
+    increment = coords.map(bundle, U)
+    expected = bundle.multiply(y, increment) if form == "body" else bundle.multiply(increment, y)
+    _close(coords.apply(bundle, U, y, form), expected, tol=1e-11)

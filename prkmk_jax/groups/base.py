@@ -81,6 +81,18 @@ class AbstractLieGroup(eqx.Module):
     def dexp_inv(cls, u: Array, v: Array) -> Array:
         """Inverse of `dexp` in its exact (or converged-series) form."""
 
+    @classmethod
+    @abc.abstractmethod
+    def exp_adjoint(cls, u: Array, x: Array) -> Array:
+        """Ad_{exp(u)} x, the same as `exp(u).adjoint(x)`. Groups with a closed
+        form act on x directly, without forming exp(u) (Rodrigues on SO(3)):
+        the fiber update of a PRKMK step on G⋉g is this action."""
+
+    @classmethod
+    @abc.abstractmethod
+    def inverse_shifted_ad(cls, u: Array, v: Array, alpha: float) -> Array:
+        """(I + α ad_u)⁻¹ v, the fiber factor of the semidirect Cayley map (§4.4)."""
+
     def __matmul__(self, other: Self) -> Self:
         return self.multiply(other)
 
@@ -105,3 +117,8 @@ class AbstractQuadraticGroup(AbstractLieGroup):
     @abc.abstractmethod
     def dcayley_inv(cls, u: Array, v: Array) -> Array:
         """Inverse differential (1 − u/2) v (1 + u/2) = v − [u,v]/2 − uvu/4."""
+
+    @classmethod
+    @abc.abstractmethod
+    def cayley_adjoint(cls, u: Array, x: Array) -> Array:
+        """Ad_{cay(u)} x, the same as `cayley(u).adjoint(x)` (see `exp_adjoint`)."""

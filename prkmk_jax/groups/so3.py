@@ -35,13 +35,70 @@ def vee(m: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     )
 
 
+# The maps below are written entrywise (components, outer products, sums of
+# products) rather than with `jnp.cross`, `@` or reductions over the last
+# axis: on batches of 3-vectors XLA then fuses a whole map into one loop,
+# where a batched 3×3 `dot` or a reduction would each be a separate kernel.
+# This is most of the cost of a PRKMK step on SO(3)-based bundles.
+
+
 def _theta_sq(u):
-    return jnp.sum(u * u, axis=-1)
+    return u[..., 0] * u[..., 0] + u[..., 1] * u[..., 1] + u[..., 2] * u[..., 2]
+
+
+def _dot(u, v):
+    return u[..., 0] * v[..., 0] + u[..., 1] * v[..., 1] + u[..., 2] * v[..., 2]
+
+
+def _cross(u, v):
+    u0, u1, u2 = u[..., 0], u[..., 1], u[..., 2]
+    v0, v1, v2 = v[..., 0], v[..., 1], v[..., 2]
+    return jnp.stack([u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0], axis=-1)
 
 
 def _cross_twice(u, v):
-    """û² v = u × (u × v)."""
-    return jnp.cross(u, jnp.cross(u, v))
+    """û² v = u × (u × v) = (u·v) u − θ² v."""
+    return _dot(u, v)[..., None] * u - _theta_sq(u)[..., None] * v
+
+
+def _matvec(m, v):
+    return m[..., 0] * v[..., 0:1] + m[..., 1] * v[..., 1:2] + m[..., 2] * v[..., 2:3]
+
+
+def _matmul(a, b):
+    return a[..., :, 0:1] * b[..., 0:1, :] + a[..., :, 1:2] * b[..., 1:2, :] + a[..., :, 2:3] * b[..., 2:3, :]
+
+
+def _eye_plus(alpha, beta, gamma, u):
+    """αI + β û + γ uuᵀ, entrywise."""
+    x, y, z = u[..., 0], u[..., 1], u[..., 2]
+    rows = [
+        [alpha + gamma * x * x, gamma * x * y - beta * z, gamma * x * z + beta * y],
+        [gamma * y * x + beta * z, alpha + gamma * y * y, gamma * y * z - beta * x],
+        [gamma * z * x - beta * y, gamma * z * y + beta * x, alpha + gamma * z * z],
+    ]
+    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def _rotation_coefficients(t2):
+    """(sin θ/θ, (1 − cos θ)/θ²) from one sine and cosine of θ/2:
+    sin θ/θ = sin(θ/2)cos(θ/2)/(θ/2), (1 − cos θ)/θ² = ½(sin(θ/2)/(θ/2))²,
+    neither of which cancels. Taylor branches below `_SMALL` (double where)."""
+    small = t2 < _SMALL
+    half = 0.5 * jnp.sqrt(jnp.where(small, _SMALL, t2))
+    sinc_half = jnp.sin(half) / half
+    a_exact = sinc_half * jnp.cos(half)
+    b_exact = 0.5 * sinc_half * sinc_half
+    a_taylor = _poly(t2, [1.0, -1 / 6, 1 / 120, -1 / 5040, 1 / 362880])
+    b_taylor = _poly(t2, [0.5, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800])
+    return jnp.where(small, a_taylor, a_exact), jnp.where(small, b_taylor, b_exact)
+
+
+def _poly(x, coefficients):
+    acc = jnp.zeros_like(x)
+    for c in reversed(coefficients):
+        acc = acc * x + c
+    return acc
 
 
 class SO3(AbstractQuadraticGroup):
@@ -62,12 +119,9 @@ class SO3(AbstractQuadraticGroup):
     def exp(cls, u: Float[Array, "*batch 3"]) -> Self:
         """Rodrigues' formula R = I + (sin θ/θ) û + ((1 − cos θ)/θ²) û²."""
         t2 = _theta_sq(u)
-        a = taylor_or_exact(t2, [1.0, -1 / 6, 1 / 120, -1 / 5040, 1 / 362880], lambda s: jnp.sin(jnp.sqrt(s)) / jnp.sqrt(s), _SMALL)
-        # (1 − cos θ)/θ² = ½ (sin(θ/2)/(θ/2))² has no cancellation.
-        b = taylor_or_exact(t2, [0.5, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800], lambda s: 0.5 * (jnp.sin(0.5 * jnp.sqrt(s)) / (0.5 * jnp.sqrt(s))) ** 2, _SMALL)
-        uh = hat(u)
-        eye = jnp.eye(3, dtype=u.dtype)
-        return cls(eye + a[..., None, None] * uh + b[..., None, None] * (uh @ uh))
+        a, b = _rotation_coefficients(t2)
+        # û² = uuᵀ − θ² I
+        return cls(_eye_plus(1.0 - b * t2, a, b, u))
 
     def log(self) -> Float[Array, "*batch 3"]:
         """Rotation vector with angle in [0, π], through the unit quaternion
@@ -113,7 +167,7 @@ class SO3(AbstractQuadraticGroup):
         return factor[..., None] * v
 
     def multiply(self, other: Self) -> Self:
-        return SO3(self.matrix @ other.matrix)
+        return SO3(_matmul(self.matrix, other.matrix))
 
     def inverse(self) -> Self:
         return SO3(jnp.swapaxes(self.matrix, -1, -2))
@@ -123,7 +177,7 @@ class SO3(AbstractQuadraticGroup):
 
     def adjoint(self, u: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3"]:
         """Ad_R u = R u."""
-        return jnp.einsum("...ij,...j->...i", self.matrix, u)
+        return _matvec(self.matrix, u)
 
     def algebra_zeros(self) -> Float[Array, "*batch 3"]:
         return jnp.zeros(self.matrix.shape[:-1], self.matrix.dtype)
@@ -135,15 +189,17 @@ class SO3(AbstractQuadraticGroup):
     @classmethod
     def bracket(cls, u, v):
         """[û, v̂] = (u × v)^."""
-        return jnp.cross(u, v)
+        return _cross(u, v)
 
     @classmethod
     def dexp(cls, u, v):
         """dexp_u v = v + ((1 − cos θ)/θ²) u×v + ((θ − sin θ)/θ³) u×(u×v)."""
         t2 = _theta_sq(u)
-        b = taylor_or_exact(t2, [0.5, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800], lambda s: 0.5 * (jnp.sin(0.5 * jnp.sqrt(s)) / (0.5 * jnp.sqrt(s))) ** 2, _SMALL)
-        c = taylor_or_exact(t2, [1 / 6, -1 / 120, 1 / 5040, -1 / 362880, 1 / 39916800], lambda s: (jnp.sqrt(s) - jnp.sin(jnp.sqrt(s))) / s**1.5, _SMALL)
-        return v + b[..., None] * jnp.cross(u, v) + c[..., None] * _cross_twice(u, v)
+        a, b = _rotation_coefficients(t2)
+        # (θ − sin θ)/θ³ = (1 − a)/θ², Taylor below _SMALL where it cancels.
+        small = t2 < _SMALL
+        c = jnp.where(small, _poly(t2, [1 / 6, -1 / 120, 1 / 5040, -1 / 362880, 1 / 39916800]), (1.0 - a) / jnp.where(small, 1.0, t2))
+        return v + b[..., None] * _cross(u, v) + c[..., None] * _cross_twice(u, v)
 
     @classmethod
     def dexp_inv(cls, u, v):
@@ -155,23 +211,41 @@ class SO3(AbstractQuadraticGroup):
             return (1.0 - 0.5 * th / jnp.tan(0.5 * th)) / s
 
         c = taylor_or_exact(t2, [1 / 12, 1 / 720, 1 / 30240, 1 / 1209600, 1 / 47900160], exact, _SMALL)
-        return v - 0.5 * jnp.cross(u, v) + c[..., None] * _cross_twice(u, v)
+        return v - 0.5 * _cross(u, v) + c[..., None] * _cross_twice(u, v)
+
+    @classmethod
+    def exp_adjoint(cls, u, x):
+        """exp(û) x = x + (sin θ/θ) u×x + ((1 − cos θ)/θ²) u×(u×x) (Rodrigues)."""
+        a, b = _rotation_coefficients(_theta_sq(u))
+        return x + a[..., None] * _cross(u, x) + b[..., None] * _cross_twice(u, x)
+
+    @classmethod
+    def inverse_shifted_ad(cls, u, v, alpha):
+        """(I + αû)⁻¹ v = (v − α u×v + α²(u·v) u)/(1 + α²θ²)."""
+        alpha2 = alpha * alpha
+        return (v - alpha * _cross(u, v) + alpha2 * _dot(u, v)[..., None] * u) / (1.0 + alpha2 * _theta_sq(u))[..., None]
 
     @classmethod
     def cayley(cls, u) -> Self:
         """cay(u) = I + 4/(4 + θ²) (û + û²/2)."""
-        uh = hat(u)
-        k = 4.0 / (4.0 + _theta_sq(u))
-        eye = jnp.eye(3, dtype=u.dtype)
-        return cls(eye + k[..., None, None] * (uh + 0.5 * uh @ uh))
+        t2 = _theta_sq(u)
+        k = 4.0 / (4.0 + t2)
+        # û + û²/2 = û + (uuᵀ − θ² I)/2
+        return cls(_eye_plus(1.0 - 0.5 * k * t2, k, 0.5 * k, u))
 
     @classmethod
     def dcayley(cls, u, v):
         """dcay_u v = 4/(4 + θ²) (v + ½ u×v)."""
         k = 4.0 / (4.0 + _theta_sq(u))
-        return k[..., None] * (v + 0.5 * jnp.cross(u, v))
+        return k[..., None] * (v + 0.5 * _cross(u, v))
 
     @classmethod
     def dcayley_inv(cls, u, v):
         """dcay_u⁻¹ v = v − ½ u×v + ¼ (u·v) u  (since ûv̂û = −(u·v)û)."""
-        return v - 0.5 * jnp.cross(u, v) + 0.25 * jnp.sum(u * v, axis=-1, keepdims=True) * u
+        return v - 0.5 * _cross(u, v) + 0.25 * _dot(u, v)[..., None] * u
+
+    @classmethod
+    def cayley_adjoint(cls, u, x):
+        """cay(û) x = x + 4/(4 + θ²) (u×x + ½ u×(u×x))."""
+        k = 4.0 / (4.0 + _theta_sq(u))
+        return x + k[..., None] * (_cross(u, x) + 0.5 * _cross_twice(u, x))

@@ -109,6 +109,19 @@ class SOn(AbstractQuadraticGroup):
         return dexp_inv_series(cls.bracket, u, v, EXACT_SERIES_TERMS)
 
     @classmethod
+    def exp_adjoint(cls, u, x):
+        return cls.exp(u).adjoint(x)
+
+    @classmethod
+    def inverse_shifted_ad(cls, u, v, alpha):
+        """Dense solve on the flattened algebra (ad_u as an n²×n² matrix)."""
+        if u.ndim > 2:
+            return jax.vmap(lambda uu, vv: cls.inverse_shifted_ad(uu, vv, alpha))(u, v)
+        ad = jax.jacfwd(lambda w: _commutator(u, w))(v).reshape(v.size, v.size)
+        eye = jnp.eye(v.size, dtype=v.dtype)
+        return jnp.linalg.solve(eye + alpha * ad, v.reshape(-1)).reshape(v.shape)
+
+    @classmethod
     def cayley(cls, u) -> Self:
         eye = _eye_like(u)
         return cls(jnp.linalg.solve(eye - 0.5 * u, eye + 0.5 * u))
@@ -124,3 +137,6 @@ class SOn(AbstractQuadraticGroup):
     def dcayley_inv(cls, u, v):
         return v - 0.5 * _commutator(u, v) - 0.25 * u @ v @ u
 
+    @classmethod
+    def cayley_adjoint(cls, u, x):
+        return cls.cayley(u).adjoint(x)

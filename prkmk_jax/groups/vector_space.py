@@ -60,6 +60,14 @@ class VectorSpace(AbstractQuadraticGroup):
         return v
 
     @classmethod
+    def exp_adjoint(cls, u, x):
+        return x
+
+    @classmethod
+    def inverse_shifted_ad(cls, u, v, alpha):
+        return v
+
+    @classmethod
     def cayley(cls, u) -> Self:
         return cls(u)
 
@@ -70,3 +78,7 @@ class VectorSpace(AbstractQuadraticGroup):
     @classmethod
     def dcayley_inv(cls, u, v):
         return v
+
+    @classmethod
+    def cayley_adjoint(cls, u, x):
+        return x

@@ -1,0 +1,154 @@
+"""This working tree against an earlier revision of the library, interleaved.
+
+A speed claim is a before/after ratio measured in one process: the package
+as it was at `--rev` is exported with `git archive` under the name
+`prkmk_jax_at_rev` (its imports are relative) and imported next to the
+working tree's `prkmk_jax`. Both build the same method on the same problem —
+the free rigid body on T*SO(3) (body form, h = 0.01, the paper's inertia, a
+batch of random attitudes and momenta) — and are compiled, checked to give
+the same final states (≤ 1e-11 in float64, 1e-4 in float32), and then timed
+in alternation. Columns: ns per trajectory-step of each, the median of the
+per-round ratios now/before, and the compile times.
+
+Paths: `integrate` (lax.scan), `diffeqsolve(PRKMKSolver)`, and
+`value_and_grad` of a loss on the final state with respect to the inertia
+through `integrate`.
+
+    python benchmarks/against_revision.py --rev a1a3087 --out benchmarks/results
+    python benchmarks/against_revision.py --quick          # against HEAD
+"""
+
+import importlib
+import json
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import prkmk_jax as pk
+
+import _common as C
+
+H = 0.01
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def import_revision(rev: str):
+    """The package `prkmk_jax` as committed at `rev`, as a separate module."""
+    sha = subprocess.run(["git", "rev-parse", "--short", rev], cwd=ROOT, check=True, capture_output=True, text=True).stdout.strip()
+    folder = Path(tempfile.mkdtemp(prefix="prkmk_rev_"))
+    archive = subprocess.run(["git", "archive", rev, "prkmk_jax"], cwd=ROOT, check=True, capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(folder)], input=archive, check=True)
+    shutil.move(folder / "prkmk_jax", folder / "prkmk_jax_at_rev")
+    sys.path.insert(0, str(folder))
+    return importlib.import_module("prkmk_jax_at_rev"), sha
+
+
+def _field(lib):
+    def field(t, y, inertia):
+        return y.fiber / inertia, jnp.zeros_like(y.fiber)
+
+    del lib
+    return field
+
+
+def _method(lib, tableau, coordinates):
+    coords = lib.Exp() if coordinates == "exp" else lib.Cayley()
+    return lib.PRKMK(lib.Cotangent(lib.SO3), coords, getattr(lib, tableau), form="body")
+
+
+def _runs(lib, tableau, coordinates, steps):
+    method, field = _method(lib, tableau, coordinates), _field(lib)
+
+    def integrate(q0, pi0, inertia):
+        y0 = lib.BundleElement(lib.SO3(q0), pi0)
+        traj = lib.integrate(method, field, y0, 0.0, H, steps, inertia, save_every=steps)
+        return traj.ys.base.matrix[-1], traj.ys.fiber[-1]
+
+    def diffeqsolve(q0, pi0, inertia):
+        y0 = lib.BundleElement(lib.SO3(q0), pi0)
+        sol = diffrax.diffeqsolve(
+            lib.PRKMKTerm(field), lib.PRKMKSolver(method), 0.0, steps * H, H, y0, inertia, max_steps=steps
+        )
+        return sol.ys.base.matrix[-1], sol.ys.fiber[-1]
+
+    def value_and_grad(qs, pis, inertia):
+        def loss(inertia):
+            q, pi = jax.vmap(integrate, in_axes=(0, 0, None))(qs, pis, inertia)
+            return jnp.sum(q[..., 0, :] ** 2 * jnp.arange(3)) + jnp.sum(pi**2)
+
+        return jax.value_and_grad(loss)(inertia)
+
+    batched = lambda fn: jax.vmap(fn, in_axes=(0, 0, None))  # noqa: E731
+    return {"integrate": batched(integrate), "diffeqsolve": batched(diffeqsolve), "value_and_grad": value_and_grad}
+
+
+def compare(before, tableau, coordinates, path, batch, dtype, steps, rounds):
+    qs, pis = C.initial_conditions(batch, seed=3)
+    args = (jnp.asarray(qs, dtype), jnp.asarray(pis, dtype), jnp.asarray(C.INERTIA, dtype))
+    fns = {"now": _runs(pk, tableau, coordinates, steps)[path], "before": _runs(before, tableau, coordinates, steps)[path]}
+    compiled, compile_s, outputs = {}, {}, {}
+    for name, fn in fns.items():
+        compiled[name], compile_s[name] = C.compile_fn(fn, *args)
+        outputs[name] = jax.block_until_ready(compiled[name](*args))
+    gap = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(outputs["now"]), jax.tree.leaves(outputs["before"])))
+    scale = max(1.0, max(float(jnp.max(jnp.abs(a))) for a in jax.tree.leaves(outputs["before"])))
+    tolerance = (1e-11 if dtype == jnp.float64 else 1e-4) * scale
+    if not gap <= tolerance:
+        raise AssertionError(f"{tableau} {coordinates} {path}: now and before differ by {gap:.2e} > {tolerance:.0e}")
+    times = {name: [] for name in compiled}
+    for _ in range(rounds):
+        for name, fn in compiled.items():
+            start = time.perf_counter()
+            jax.block_until_ready(fn(*args))
+            times[name].append(time.perf_counter() - start)
+    per_step = {name: statistics.median(ts) / (batch * steps) * 1e9 for name, ts in times.items()}
+    ratio = statistics.median(a / b for a, b in zip(times["now"], times["before"]))
+    return dict(
+        tableau=tableau, coordinates=coordinates, path=path, dtype=jnp.dtype(dtype).name, batch=batch, steps=steps,
+        ns_per_traj_step=per_step, now_over_before=ratio, compile_s=compile_s, max_abs_difference=gap,
+    )
+
+
+def main(argv=None):
+    args, out = C.cli(__doc__, argv, lambda p: (p.add_argument("--rev", default="HEAD"), p.add_argument("--rounds", type=int, default=9)))
+    before, sha = import_revision(args.rev)
+    if args.quick:
+        cases = [("stormer_verlet", "exp", "integrate", 8, jnp.float64)]
+        rounds, work = 2, 80
+    else:
+        cases = [
+            (tab, coords, path, batch, dtype)
+            for tab, coords in (("stormer_verlet", "exp"), ("stormer_verlet", "cayley"), ("lobatto_iiia_iiib4", "exp"), ("symplectic_euler", "exp"))
+            for path in ("integrate", "diffeqsolve")
+            for batch in (1, 64, 1024)
+            for dtype in (jnp.float64,)
+        ]
+        cases += [("stormer_verlet", "exp", "integrate", b, jnp.float32) for b in (1, 1024)]
+        cases += [("stormer_verlet", "exp", "value_and_grad", b, jnp.float64) for b in (1, 64)]
+        rounds, work = args.rounds, 200_000
+    print(f"now: working tree; before: {args.rev} ({sha})")
+    print(f"{'tableau':20s} {'coords':6s} {'path':14s} {'dtype':7s} {'batch':>5s} {'now ns':>8s} {'bef. ns':>8s} {'ratio':>6s} {'cmp now':>7s} {'cmp bef':>7s} {'max diff':>8s}")
+    rows = []
+    for tab, coords, path, batch, dtype in cases:
+        steps = int(max(20, min(400, work // batch)))
+        row = compare(before, tab, coords, path, batch, dtype, steps, rounds)
+        rows.append(row)
+        ns, cs = row["ns_per_traj_step"], row["compile_s"]
+        print(
+            f"{tab:20s} {coords:6s} {path:14s} {row['dtype']:7s} {batch:5d} {ns['now']:8.0f} {ns['before']:8.0f} "
+            f"{row['now_over_before']:6.2f} {cs['now']:7.2f} {cs['before']:7.2f} {row['max_abs_difference']:8.1e}",
+            flush=True,
+        )
+    with open(out / "against_revision.json", "w") as f:
+        json.dump(dict(machine=C.machine(), rev=args.rev, sha=sha, rounds=rounds, rows=rows), f, indent=1)
+
+
+if __name__ == "__main__":
+    main()

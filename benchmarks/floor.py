@@ -1,0 +1,294 @@
+"""The floor: hand-fused closed-form steps against the generic PRKMK step.
+
+Free rigid body on T*SO(3) (Cotangent, body form, exp coordinates), h = 0.01,
+the paper's inertia, a batch of random attitudes and momenta. Two methods:
+
+- Störmer–Verlet (the §5 pair). With the generator (Ω, 0) and dexp⁻¹ ≈ I
+  (truncation for order 2), the step is u = (h/2)(Ωₙ + Ω₁),
+  Ω₁ = I⁻¹ exp(−û)Πₙ solved by fixed-point iteration, then
+  Qₙ₊₁ = Qₙ exp(û), Πₙ₊₁ = exp(−û)Πₙ.
+- Lobatto IIIA–IIIB, 3 stages, order 4: all six stage slopes (K_i, L_i) of the
+  one implicit block iterated together, dexp⁻¹ truncated at ad² on the
+  semidirect algebra, fiber update exp(−û)Πₙ + dexp_{−u}(v).
+
+The hand-fused kernels are written here on 3-vectors with Rodrigues'
+formula, independently of the library (no prkmk_jax code inside them). They
+use the library's default stage criterion (max |ΔK|/(tol + tol|K|) < 1,
+tol = max(1e-12, 50 eps)) and its starting guess (the field at yₙ), so they
+give the same trajectory; the script asserts agreement (1e-10 in float64,
+1e-4 in float32) before timing. Störmer–Verlet's first stage is explicit for
+this field (η = 0 makes L₁ = 0); the floor uses that, while a generic step
+cannot know it in advance and spends one iteration confirming it. The
+iteration columns count what each one runs.
+
+Columns: the fused floor, `prkmk_jax.integrate` (lax.scan), diffeqsolve with
+`PRKMKSolver` (ConstantStepSize), and for Störmer–Verlet diffrax Tsit5 with
+the same step on the embedding ℝ⁹×ℝ³. Runs are interleaved (one of each per
+round); times are medians, ratios are medians of per-round ratios; compile
+time is reported separately.
+
+    python benchmarks/floor.py --out benchmarks/results
+    python benchmarks/floor.py --quick
+"""
+
+import functools
+import json
+import statistics
+import time
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import prkmk_jax as pk
+
+import _common as C
+
+H = 0.01
+
+
+# --- the hand-fused kernels ----------------------------------------------------------
+def _sq(w):
+    return jnp.sum(w * w, axis=-1, keepdims=True)
+
+
+def _trig(w):
+    """(sin θ/θ, (1 − cos θ)/θ², (θ − sin θ)/θ³) of θ = |w|, Taylor near 0."""
+    t2 = _sq(w)
+    small = t2 < 1e-2
+    safe = jnp.where(small, 1.0, t2)
+    th = jnp.sqrt(safe)
+    s, c = jnp.sin(th), jnp.cos(th)
+    a = jnp.where(small, 1 - t2 / 6 + t2 * t2 / 120 - t2**3 / 5040, s / th)
+    b = jnp.where(small, 0.5 - t2 / 24 + t2 * t2 / 720 - t2**3 / 40320, (1 - c) / safe)
+    d = jnp.where(small, 1 / 6 - t2 / 120 + t2 * t2 / 5040 - t2**3 / 362880, (th - s) / (safe * th))
+    return a, b, d
+
+
+def _rotate(w, x):
+    """exp(ŵ) x."""
+    a, b, _ = _trig(w)
+    wx = jnp.cross(w, x)
+    return x + a * wx + b * jnp.cross(w, wx)
+
+
+def _dexp(w, v):
+    _, b, d = _trig(w)
+    wv = jnp.cross(w, v)
+    return v + b * wv + d * jnp.cross(w, wv)
+
+
+def _rotation_matrix(w):
+    a, b, _ = _trig(w)
+    x, y, z = w[0], w[1], w[2]
+    wh = jnp.array([[0, -z, y], [z, 0, -x], [-y, x, 0]], w.dtype)
+    return jnp.eye(3, dtype=w.dtype) + a * wh + b * (wh @ wh)
+
+
+def _stage_tolerance(dtype):
+    return max(1e-12, 50 * float(jnp.finfo(dtype).eps))
+
+
+def _iterate(update, start, tol, max_iterations=100):
+    """Fixed-point iteration with the library's criterion; returns (z, n)."""
+
+    def relative_change(new, old):
+        return functools.reduce(jnp.maximum, [jnp.max(jnp.abs(o - n) / (tol + tol * jnp.abs(n))) for n, o in zip(new, old)])
+
+    def body(state):
+        z, _, n = state
+        new = update(z)
+        return new, relative_change(new, z), n + 1
+
+    dtype = start[0].dtype
+    z, _, n = jax.lax.while_loop(
+        lambda s: (s[1] >= 1) & (s[2] < max_iterations), body, (start, jnp.asarray(jnp.inf, dtype), 0)
+    )
+    return z, n
+
+
+def fused_sv(q, pi, inertia, steps):
+    """Störmer–Verlet on T*SO(3) for one trajectory; (Q, Π, iterations)."""
+    tol = _stage_tolerance(pi.dtype)
+
+    def step(carry, _):
+        q, pi, total = carry
+        w0 = pi / inertia
+        # The first stage is explicit here: its slope is Ωₙ.
+        (w1,), n = _iterate(lambda z: (_rotate(-0.5 * H * (w0 + z[0]), pi) / inertia,), (w0,), tol)
+        u = 0.5 * H * (w0 + w1)
+        return (q @ _rotation_matrix(u), _rotate(-u, pi), total + n), None
+
+    (q, pi, total), _ = jax.lax.scan(step, (q, pi, 0), None, length=steps)
+    return q, pi, total
+
+
+_LOBATTO_A1 = ((0.0, 0.0, 0.0), (5 / 24, 1 / 3, -1 / 24), (1 / 6, 2 / 3, 1 / 6))
+_LOBATTO_A2 = ((1 / 6, -1 / 6, 0.0), (1 / 6, 1 / 3, 0.0), (1 / 6, 5 / 6, 0.0))
+_LOBATTO_B = (1 / 6, 2 / 3, 1 / 6)
+
+
+def _combine(row, vectors):
+    return H * sum(c * x for c, x in zip(row, vectors) if c != 0)
+
+
+def fused_lobatto(q, pi, inertia, steps):
+    """Lobatto IIIA–IIIB 4 on T*SO(3) for one trajectory; (Q, Π, iterations)."""
+    tol = _stage_tolerance(pi.dtype)
+
+    def slopes(pi, z):
+        ks, ls = z[:3], z[3:]
+        new_k, new_l = [], []
+        for i in range(3):
+            u = _combine(_LOBATTO_A1[i], ks) if any(_LOBATTO_A1[i]) else jnp.zeros_like(pi)
+            v = _combine(_LOBATTO_A2[i], ls)
+            x = (_rotate(-u, pi) + _dexp(-u, v)) / inertia
+            # dexp⁻¹_{−U}(x, 0) = X − ½[−U, X] + (1/12)[−U, [−U, X]] on the
+            # semidirect algebra, [(a, b), (x, y)] = (a×x, a×y − x×b).
+            a, b = -u, -v
+            ax = jnp.cross(a, x)
+            ad1 = (ax, -jnp.cross(x, b))
+            ad2 = (jnp.cross(a, ad1[0]), jnp.cross(a, ad1[1]) - jnp.cross(ad1[0], b))
+            new_k.append(x - 0.5 * ad1[0] + ad2[0] / 12)
+            new_l.append(-0.5 * ad1[1] + ad2[1] / 12)
+        return tuple(new_k + new_l)
+
+    def step(carry, _):
+        q, pi, total = carry
+        w0 = pi / inertia
+        zero = jnp.zeros_like(pi)
+        z, n = _iterate(lambda z: slopes(pi, z), (w0, w0, w0, zero, zero, zero), tol)
+        u = _combine(_LOBATTO_B, z[:3])
+        v = _combine(_LOBATTO_B, z[3:])
+        return (q @ _rotation_matrix(u), _rotate(-u, pi) + _dexp(-u, v), total + n), None
+
+    (q, pi, total), _ = jax.lax.scan(step, (q, pi, 0), None, length=steps)
+    return q, pi, total
+
+
+# --- the runs compared -----------------------------------------------------------------
+def _fused_run(kernel, steps):
+    return lambda q0, pi0, inertia: kernel(q0, pi0, inertia, steps)
+
+
+def _integrate_run(method, steps):
+    def run(q0, pi0, inertia):
+        y0 = pk.BundleElement(pk.SO3(q0), pi0)
+        traj = pk.integrate(method, C.FIELD, y0, 0.0, H, steps, inertia, save_every=steps)
+        return traj.ys.base.matrix[-1], traj.ys.fiber[-1], traj.stats["num_iterations"]
+
+    return run
+
+
+def _diffeqsolve_run(method, steps):
+    def run(q0, pi0, inertia):
+        y0 = pk.BundleElement(pk.SO3(q0), pi0)
+        sol = diffrax.diffeqsolve(
+            pk.PRKMKTerm(C.FIELD), pk.PRKMKSolver(method), 0.0, steps * H, H, y0, inertia, max_steps=steps
+        )
+        return sol.ys.base.matrix[-1], sol.ys.fiber[-1], jnp.array(-1)
+
+    return run
+
+
+def _tsit5_run(steps):
+    def run(q0, pi0, inertia):
+        z0 = jnp.concatenate([q0.reshape(9), pi0])
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(C.embedding_rhs), diffrax.Tsit5(), 0.0, steps * H, H, z0, inertia, max_steps=steps
+        )
+        q, pi = C.from_vector(sol.ys[-1])
+        return q, pi, jnp.array(-1)
+
+    return run
+
+
+METHODS = {
+    "SV": (pk.stormer_verlet, fused_sv),
+    "Lobatto4": (pk.lobatto_iiia_iiib4, fused_lobatto),
+}
+
+
+def compare(method_name, batch, dtype, steps, rounds):
+    """One row: interleaved timings of floor, integrate, diffeqsolve (and Tsit5)."""
+    tableau, kernel = METHODS[method_name]
+    method = pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), tableau, form="body")
+    qs, pis = C.initial_conditions(batch, seed=3)
+    args = (jnp.asarray(qs, dtype), jnp.asarray(pis, dtype), jnp.asarray(C.INERTIA, dtype))
+    columns = {
+        "floor": _fused_run(kernel, steps),
+        "integrate": _integrate_run(method, steps),
+        "diffeqsolve": _diffeqsolve_run(method, steps),
+    }
+    if method_name == "SV":
+        columns["tsit5"] = _tsit5_run(steps)
+    compiled, compile_s, outputs = {}, {}, {}
+    for name, run in columns.items():
+        compiled[name], compile_s[name] = C.compile_fn(jax.vmap(run, in_axes=(0, 0, None)), *args)
+        outputs[name] = jax.block_until_ready(compiled[name](*args))
+    tolerance = 1e-10 if dtype == jnp.float64 else 1e-4
+    for name in ("integrate", "diffeqsolve"):
+        gap = max(float(jnp.max(jnp.abs(outputs[name][k] - outputs["floor"][k]))) for k in (0, 1))
+        if not gap <= tolerance:
+            raise AssertionError(f"{method_name} {name} differs from the hand-fused step by {gap:.2e} > {tolerance:.0e}")
+    times = {name: [] for name in compiled}
+    for _ in range(rounds):
+        for name, fn in compiled.items():
+            start = time.perf_counter()
+            jax.block_until_ready(fn(*args))
+            times[name].append(time.perf_counter() - start)
+    per_step = {name: statistics.median(ts) / (batch * steps) * 1e9 for name, ts in times.items()}
+    ratio = {name: statistics.median(t / f for t, f in zip(ts, times["floor"])) for name, ts in times.items()}
+    row = dict(
+        method=method_name,
+        dtype=jnp.dtype(dtype).name,
+        batch=batch,
+        steps=steps,
+        ns_per_traj_step=per_step,
+        over_floor=ratio,
+        compile_s=compile_s,
+        iterations_per_step=dict(
+            floor=float(jnp.mean(outputs["floor"][2])) / steps,
+            integrate=float(jnp.mean(outputs["integrate"][2])) / steps,
+        ),
+    )
+    if "tsit5" in times:
+        row["integrate_over_tsit5"] = statistics.median(a / b for a, b in zip(times["integrate"], times["tsit5"]))
+    row["diffeqsolve_over_integrate"] = statistics.median(a / b for a, b in zip(times["diffeqsolve"], times["integrate"]))
+    return row
+
+
+def _print_row(row):
+    ns, ratio, its = row["ns_per_traj_step"], row["over_floor"], row["iterations_per_step"]
+    tsit = f"{ns['tsit5']:8.0f} {row['integrate_over_tsit5']:6.2f}" if "tsit5" in ns else f"{'—':>8s} {'—':>6s}"
+    print(
+        f"{row['method']:9s} {row['dtype']:8s} {row['batch']:6d} {ns['floor']:8.0f} {ns['integrate']:8.0f} {ns['diffeqsolve']:8.0f} "
+        f"{ratio['integrate']:6.2f} {ratio['diffeqsolve']:6.2f} {row['diffeqsolve_over_integrate']:6.2f} {tsit} "
+        f"{its['floor']:5.2f} {its['integrate']:5.2f}",
+        flush=True,
+    )
+
+
+def main(argv=None):
+    args, out = C.cli(__doc__, argv, lambda p: p.add_argument("--rounds", type=int, default=9))
+    batches, rounds = ((1, 8), 2) if args.quick else ((1, 64, 1024, 16384), args.rounds)
+    print(
+        f"{'method':9s} {'dtype':8s} {'batch':>6s} {'floor':>8s} {'integr.':>8s} {'diffeqs':>8s} "
+        f"{'int/fl':>6s} {'dfx/fl':>6s} {'dfx/int':>6s} {'tsit5':>8s} {'int/ts':>6s} {'it fl':>5s} {'it int':>5s}"
+    )
+    print(f"{'':34s}(ns per trajectory-step)")
+    rows = []
+    for method_name in METHODS:
+        for dtype in (jnp.float64, jnp.float32):
+            for batch in batches:
+                work = 400_000 if method_name == "SV" else 100_000
+                steps = 10 if args.quick else int(max(20, min(400, work // batch)))
+                row = compare(method_name, batch, dtype, steps, rounds)
+                rows.append(row)
+                _print_row(row)
+    with open(out / "floor.json", "w") as f:
+        json.dump(dict(machine=C.machine(), rounds=rounds, rows=rows), f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
