@@ -73,9 +73,9 @@ def _runs(lib, tableau, coordinates, steps):
 
     def diffeqsolve(q0, pi0, inertia):
         y0 = lib.BundleElement(lib.SO3(q0), pi0)
-        sol = diffrax.diffeqsolve(
-            lib.PRKMKTerm(field), lib.PRKMKSolver(method), 0.0, steps * H, H, y0, inertia, max_steps=steps
-        )
+        # Times in the state's dtype: diffeqsolve promotes the state to theirs.
+        t0, t1, dt = (jnp.asarray(x, q0.dtype) for x in (0.0, steps * H, H))
+        sol = diffrax.diffeqsolve(lib.PRKMKTerm(field), lib.PRKMKSolver(method), t0, t1, dt, y0, inertia, max_steps=steps)
         return sol.ys.base.matrix[-1], sol.ys.fiber[-1]
 
     def value_and_grad(qs, pis, inertia):

@@ -180,12 +180,17 @@ def _integrate_run(method, steps):
     return run
 
 
+def _times(steps, dtype):
+    """t0, t1, dt0 in the state's dtype: diffeqsolve promotes the state to the
+    dtype of the times, so Python floats would make a float32 run float64."""
+    return jnp.asarray(0.0, dtype), jnp.asarray(steps * H, dtype), jnp.asarray(H, dtype)
+
+
 def _diffeqsolve_run(method, steps):
     def run(q0, pi0, inertia):
         y0 = pk.BundleElement(pk.SO3(q0), pi0)
-        sol = diffrax.diffeqsolve(
-            pk.PRKMKTerm(C.FIELD), pk.PRKMKSolver(method), 0.0, steps * H, H, y0, inertia, max_steps=steps
-        )
+        t0, t1, dt = _times(steps, q0.dtype)
+        sol = diffrax.diffeqsolve(pk.PRKMKTerm(C.FIELD), pk.PRKMKSolver(method), t0, t1, dt, y0, inertia, max_steps=steps)
         return sol.ys.base.matrix[-1], sol.ys.fiber[-1], jnp.array(-1)
 
     return run
@@ -194,9 +199,8 @@ def _diffeqsolve_run(method, steps):
 def _tsit5_run(steps):
     def run(q0, pi0, inertia):
         z0 = jnp.concatenate([q0.reshape(9), pi0])
-        sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(C.embedding_rhs), diffrax.Tsit5(), 0.0, steps * H, H, z0, inertia, max_steps=steps
-        )
+        t0, t1, dt = _times(steps, q0.dtype)
+        sol = diffrax.diffeqsolve(diffrax.ODETerm(C.embedding_rhs), diffrax.Tsit5(), t0, t1, dt, z0, inertia, max_steps=steps)
         q, pi = C.from_vector(sol.ys[-1])
         return q, pi, jnp.array(-1)
 
@@ -226,6 +230,9 @@ def compare(method_name, batch, dtype, steps, rounds):
     for name, run in columns.items():
         compiled[name], compile_s[name] = C.compile_fn(jax.vmap(run, in_axes=(0, 0, None)), *args)
         outputs[name] = jax.block_until_ready(compiled[name](*args))
+    for name, output in outputs.items():
+        if output[0].dtype != dtype:
+            raise AssertionError(f"{method_name} {name} ran in {output[0].dtype}, not {jnp.dtype(dtype).name}")
     tolerance = 1e-10 if dtype == jnp.float64 else 1e-4
     for name in ("integrate", "diffeqsolve"):
         gap = max(float(jnp.max(jnp.abs(outputs[name][k] - outputs["floor"][k]))) for k in (0, 1))

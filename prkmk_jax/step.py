@@ -281,13 +281,47 @@ def _fixed_point_iteration(fn, guess, rtol, atol, max_iterations, dtype):
         # NaN never compares below 1, so a non-finite iterate ends here too.
         return z, (error, n.astype(dtype))
 
+    def linear_iteration(linear_residual, rhs):
+        # linear_residual(x) = (J − I)x with J = ∂fn, a contraction wherever
+        # the iteration above converged; x ← Jx − rhs = linear_residual(x) + x − rhs
+        # converges to the solution as fast. The same loop solves the
+        # transposed system in reverse mode, with the transposed map.
+        def keep_going(carry):
+            _, change, n = carry
+            return (change > 0) & (n < max_iterations)
+
+        def iterate(carry):
+            x, _, n = carry
+            new = jax.tree.map(lambda r, xi, b: r + xi - b, linear_residual(x), x, rhs)
+            return new, _relative_size(jax.tree.map(jnp.subtract, new, x), new, rtol), n + 1
+
+        start = jax.tree.map(jnp.negative, rhs)
+        x, _, _ = jax.lax.while_loop(keep_going, iterate, (start, jnp.asarray(jnp.inf, dtype), jnp.array(0, jnp.int32)))
+        return x
+
     def tangent_solve(linear_residual, rhs):
+        # One flat vector: custom_linear_solve's transpose needs every part of
+        # the right-hand side to be linear in the tangents, and some parts of
+        # a stage block (say L when η does not depend on the parameters) are
+        # constant zeros.
         flat, unflatten = jax.flatten_util.ravel_pytree(rhs)
-        matrix = jax.jacfwd(lambda x: jax.flatten_util.ravel_pytree(linear_residual(unflatten(x)))[0])(jnp.zeros_like(flat))
-        return unflatten(jnp.linalg.solve(matrix, flat))
+
+        def flat_residual(x):
+            return jax.flatten_util.ravel_pytree(linear_residual(unflatten(x)))[0]
+
+        return unflatten(jax.lax.custom_linear_solve(flat_residual, flat, linear_iteration, linear_iteration))
 
     residual = lambda z: jax.tree.map(jnp.subtract, fn(z), z)  # noqa: E731
     z, (error, n) = jax.lax.custom_root(residual, guess, solve, tangent_solve, has_aux=True)
     error, n = jax.lax.stop_gradient((error, n))
     result = RESULTS.where(error < 1, RESULTS.successful, RESULTS.nonlinear_max_steps_reached)
     return z, result, n.astype(jnp.int32)
+
+
+def _relative_size(change, reference, rtol):
+    """max|change| − rtol·max|reference| over all leaves: ≤ 0 once the linear
+    iteration has settled to `rtol` relative to its iterate."""
+    leaves = jax.tree.leaves(change)
+    biggest = functools.reduce(jnp.maximum, [jnp.max(jnp.abs(x)) for x in leaves])
+    scale = functools.reduce(jnp.maximum, [jnp.max(jnp.abs(x)) for x in jax.tree.leaves(reference)])
+    return biggest - rtol * scale
