@@ -276,6 +276,28 @@ def median_time(compiled, *args, repeats=5):
     return statistics.median(runs), out
 
 
+def compile_all(fns, *args):
+    """jit-compile each of a dict of functions and run it once; returns
+    (compiled, compile seconds, outputs), each a dict by the same names."""
+    compiled, compile_s, outputs = {}, {}, {}
+    for name, fn in fns.items():
+        compiled[name], compile_s[name] = compile_fn(fn, *args)
+        outputs[name] = jax.block_until_ready(compiled[name](*args))
+    return compiled, compile_s, outputs
+
+
+def interleaved_times(compiled, *args, rounds):
+    """Wall times of a dict of compiled functions run in alternation, one of
+    each per round, so that a slow spell of the machine hits all of them."""
+    times = {name: [] for name in compiled}
+    for _ in range(rounds):
+        for name, fn in compiled.items():
+            start = time.perf_counter()
+            jax.block_until_ready(fn(*args))
+            times[name].append(time.perf_counter() - start)
+    return times
+
+
 def machine():
     return dict(
         platform=platform.platform(),

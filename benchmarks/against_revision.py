@@ -25,7 +25,6 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import diffrax
@@ -93,21 +92,13 @@ def compare(before, tableau, coordinates, path, batch, dtype, steps, rounds):
     qs, pis = C.initial_conditions(batch, seed=3)
     args = (jnp.asarray(qs, dtype), jnp.asarray(pis, dtype), jnp.asarray(C.INERTIA, dtype))
     fns = {"now": _runs(pk, tableau, coordinates, steps)[path], "before": _runs(before, tableau, coordinates, steps)[path]}
-    compiled, compile_s, outputs = {}, {}, {}
-    for name, fn in fns.items():
-        compiled[name], compile_s[name] = C.compile_fn(fn, *args)
-        outputs[name] = jax.block_until_ready(compiled[name](*args))
+    compiled, compile_s, outputs = C.compile_all(fns, *args)
     gap = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(outputs["now"]), jax.tree.leaves(outputs["before"])))
     scale = max(1.0, max(float(jnp.max(jnp.abs(a))) for a in jax.tree.leaves(outputs["before"])))
     tolerance = (1e-11 if dtype == jnp.float64 else 1e-4) * scale
     if not gap <= tolerance:
         raise AssertionError(f"{tableau} {coordinates} {path}: now and before differ by {gap:.2e} > {tolerance:.0e}")
-    times = {name: [] for name in compiled}
-    for _ in range(rounds):
-        for name, fn in compiled.items():
-            start = time.perf_counter()
-            jax.block_until_ready(fn(*args))
-            times[name].append(time.perf_counter() - start)
+    times = C.interleaved_times(compiled, *args, rounds=rounds)
     per_step = {name: statistics.median(ts) / (batch * steps) * 1e9 for name, ts in times.items()}
     ratio = statistics.median(a / b for a, b in zip(times["now"], times["before"]))
     return dict(

@@ -20,7 +20,6 @@ import argparse
 import json
 import platform
 import statistics
-import time
 from pathlib import Path
 
 import diffrax
@@ -30,24 +29,13 @@ import numpy as np
 import prkmk_jax as pk
 from prkmk_jax.scenes import rigid_body as rb
 
-from _common import compile_fn
+from _common import compile_fn, interleaved_times
 
 
 def _compile(fn, *args):
     compiled, compile_s = compile_fn(fn, *args)
     jax.block_until_ready(compiled(*args))  # warm-up
     return compiled, compile_s
-
-
-def _interleaved(fns, args, repeats):
-    """Times of each compiled fn over `repeats` rounds, run in turn."""
-    times = [[] for _ in fns]
-    for _ in range(repeats):
-        for k, fn in enumerate(fns):
-            start = time.perf_counter()
-            jax.block_until_ready(fn(*args))
-            times[k].append(time.perf_counter() - start)
-    return times
 
 
 def main(argv=None):
@@ -116,7 +104,7 @@ def main(argv=None):
         compiled = [
             _compile(jax.vmap(fn), pis) for fn in (scan_run, diffrax_run, while_run)
         ]
-        times = _interleaved([c for c, _ in compiled], (pis,), repeats)
+        times = list(interleaved_times(dict(enumerate(c for c, _ in compiled)), pis, rounds=repeats).values())
         per = lambda ts: statistics.median(ts) / (steps * batch) * 1e9
         ratio = lambda a, b: statistics.median(
             x / y for x, y in zip(times[a], times[b])

@@ -34,7 +34,6 @@ time is reported separately.
 import functools
 import json
 import statistics
-import time
 
 import diffrax
 import jax
@@ -226,10 +225,8 @@ def compare(method_name, batch, dtype, steps, rounds):
     }
     if method_name == "SV":
         columns["tsit5"] = _tsit5_run(steps)
-    compiled, compile_s, outputs = {}, {}, {}
-    for name, run in columns.items():
-        compiled[name], compile_s[name] = C.compile_fn(jax.vmap(run, in_axes=(0, 0, None)), *args)
-        outputs[name] = jax.block_until_ready(compiled[name](*args))
+    batched = {name: jax.vmap(run, in_axes=(0, 0, None)) for name, run in columns.items()}
+    compiled, compile_s, outputs = C.compile_all(batched, *args)
     for name, output in outputs.items():
         if output[0].dtype != dtype:
             raise AssertionError(f"{method_name} {name} ran in {output[0].dtype}, not {jnp.dtype(dtype).name}")
@@ -238,12 +235,7 @@ def compare(method_name, batch, dtype, steps, rounds):
         gap = max(float(jnp.max(jnp.abs(outputs[name][k] - outputs["floor"][k]))) for k in (0, 1))
         if not gap <= tolerance:
             raise AssertionError(f"{method_name} {name} differs from the hand-fused step by {gap:.2e} > {tolerance:.0e}")
-    times = {name: [] for name in compiled}
-    for _ in range(rounds):
-        for name, fn in compiled.items():
-            start = time.perf_counter()
-            jax.block_until_ready(fn(*args))
-            times[name].append(time.perf_counter() - start)
+    times = C.interleaved_times(compiled, *args, rounds=rounds)
     per_step = {name: statistics.median(ts) / (batch * steps) * 1e9 for name, ts in times.items()}
     ratio = {name: statistics.median(t / f for t, f in zip(ts, times["floor"])) for name, ts in times.items()}
     row = dict(
