@@ -256,9 +256,10 @@ def _fixed_point_iteration(fn, guess, rtol, atol, max_iterations, dtype):
     A bare `lax.while_loop` carrying only the iterate, its error and a counter:
     under `vmap` every carried value costs a select per iteration, so this
     carries no more. Derivatives come from the implicit function theorem
-    (`jax.lax.custom_root`): the tangent system (I − ∂fn)ż = ∂fn/∂θ·θ̇ is
-    solved densely, which is cheap for the few stages × algebra dimensions of
-    a block, and is transposable for reverse mode.
+    (`jax.lax.custom_root`): the tangent system (I − ∂fn)ż = ∂fn/∂θ·θ̇, and in
+    reverse mode its transpose, are solved by the same fixed-point iteration
+    on the linearised map (`jax.lax.custom_linear_solve`): a few
+    Jacobian-vector (or vector-Jacobian) products a step, no dense Jacobian.
     """
 
     def relative_change(new, old):
