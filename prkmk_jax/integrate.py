@@ -6,7 +6,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, PyTree
 
 from .bundles import BundleElement
-from .step import PRKMK, RESULTS, VectorField
+from .step import PRKMK, RESULTS, STAGE_SLOPES_NAME, VectorField
 
 
 class Trajectory(eqx.Module):
@@ -85,8 +85,16 @@ def integrate(
         result = RESULTS.where(result == RESULTS.successful, step_result, result)
         return (y_next, result, total + iters, jnp.maximum(worst, iters)), None
 
+    # Under reverse mode a scanned step would store every intermediate of
+    # every step (hundreds of per-trajectory scalars); rematerialised, it
+    # stores the state and the implicit stages' solutions only, and the
+    # backward pass re-runs the explicit arithmetic (value_and_grad/forward
+    # 6.4 → 3.6 on the gradient benchmark).
+    saved = jax.checkpoint_policies.save_only_these_names(STAGE_SLOPES_NAME)
+    step_fn = jax.checkpoint(one_step, prevent_cse=False, policy=saved)
+
     def one_save(carry, first):
-        carry, _ = jax.lax.scan(one_step, carry, first + jnp.arange(save_every))
+        carry, _ = jax.lax.scan(step_fn, carry, first + jnp.arange(save_every))
         return carry, carry[0]
 
     zero = jnp.array(0, jnp.int32)

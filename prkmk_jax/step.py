@@ -26,6 +26,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.flatten_util
+from jax.ad_checkpoint import checkpoint_name
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
@@ -36,6 +37,7 @@ from .coordinates import AbstractCoordinates, Exp
 from .tableaus import PartitionedTableau, stormer_verlet
 
 RESULTS = diffrax.RESULTS
+STAGE_SLOPES_NAME = "prkmk_stage_slopes"
 VectorField = Callable[[Array, BundleElement, PyTree], AlgebraPair]
 
 
@@ -255,74 +257,91 @@ def _fixed_point_iteration(fn, guess, rtol, atol, max_iterations, dtype):
 
     A bare `lax.while_loop` carrying only the iterate, its error and a counter:
     under `vmap` every carried value costs a select per iteration, so this
-    carries no more. Derivatives come from the implicit function theorem
-    (`jax.lax.custom_root`): the tangent system (I − ∂fn)ż = ∂fn/∂θ·θ̇, and in
+    carries no more. Derivatives come from the implicit function theorem, as
+    a `jax.custom_jvp` whose rule is traced only when the step is
+    differentiated: the tangent system (I − ∂fn/∂z)ż = ∂fn/∂θ·θ̇, and in
     reverse mode its transpose, are solved by the same fixed-point iteration
     on the linearised map (`jax.lax.custom_linear_solve`): a few
     Jacobian-vector (or vector-Jacobian) products a step, no dense Jacobian.
     """
+    # The stage inputs fn closes over (yₙ, h, args, earlier slopes) become
+    # explicit arguments, so the JVP rule can differentiate with respect to them.
+    closed_fn, consts = jax.closure_convert(fn, guess)
+    settings = _IterationSettings(float(rtol), float(atol), int(max_iterations), jnp.dtype(dtype))
+    z, error, n = _solve_fixed_point(closed_fn, settings, guess, *consts)
+    result = RESULTS.where(error < 1, RESULTS.successful, RESULTS.nonlinear_max_steps_reached)
+    return z, result, n
+
+
+class _IterationSettings(eqx.Module):
+    """The static settings of one fixed-point solve (hashable, for custom_jvp)."""
+
+    rtol: float = eqx.field(static=True)
+    atol: float = eqx.field(static=True)
+    max_iterations: int = eqx.field(static=True)
+    dtype: Any = eqx.field(static=True)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
+def _solve_fixed_point(closed_fn, settings, guess, *consts):
+    rtol, atol, dtype = settings.rtol, settings.atol, settings.dtype
 
     def relative_change(new, old):
         ratios = [jnp.max(jnp.abs(o - n) / (atol + rtol * jnp.abs(n))) for n, o in zip(jax.tree.leaves(new), jax.tree.leaves(old))]
         return functools.reduce(jnp.maximum, ratios)
 
-    def solve(_residual, z0):
+    def keep_going(carry):
+        _, error, n = carry
+        return (error >= 1) & (n < settings.max_iterations)
+
+    def iterate(carry):
+        z, _, n = carry
+        new = closed_fn(z, *consts)
+        return new, relative_change(new, z), n + 1
+
+    # NaN never compares below 1, so a non-finite iterate ends the loop too.
+    init = (guess, jnp.asarray(jnp.inf, dtype), jnp.array(0, jnp.int32))
+    return jax.lax.while_loop(keep_going, iterate, init)
+
+
+@_solve_fixed_point.defjvp
+def _solve_fixed_point_jvp(closed_fn, settings, primals, tangents):
+    guess, *consts = primals
+    _, *const_tangents = tangents  # the solution does not depend on the guess
+    z, error, n = _solve_fixed_point(closed_fn, settings, guess, *consts)
+    # Named, so that a rematerialised step (`integrate` under reverse mode)
+    # keeps the solution instead of iterating to it again.
+    z = checkpoint_name(z, STAGE_SLOPES_NAME)
+    # ż = ∂fn/∂z·ż + ∂fn/∂θ·θ̇, i.e. (I − ∂fn/∂z)ż = rhs.
+    _, rhs = jax.jvp(lambda *c: closed_fn(z, *c), tuple(consts), tuple(const_tangents))
+    _, linearised = jax.linearize(lambda w: closed_fn(w, *consts), z)
+    # One flat vector: custom_linear_solve's transpose needs every part of
+    # the right-hand side to be linear in the tangents, and some parts of
+    # a stage block (say L when η does not depend on the parameters) are
+    # constant zeros.
+    flat_rhs, unflatten = jax.flatten_util.ravel_pytree(rhs)
+
+    def identity_minus_jacobian(x):
+        return x - jax.flatten_util.ravel_pytree(linearised(unflatten(x)))[0]
+
+    def iterate_linear(matvec, b):
+        # (I − J)x = b with J a contraction wherever the nonlinear iteration
+        # converged: x ← x − matvec(x) + b = Jx + b converges as fast. The same
+        # loop solves the transposed system in reverse mode, with Jᵀ.
         def keep_going(carry):
-            _, error, n = carry
-            return (error >= 1) & (n < max_iterations)
+            _, change, k = carry
+            return (change > 0) & (k < settings.max_iterations)
 
-        def iterate(carry):
-            z, _, n = carry
-            new = fn(z)
-            return new, relative_change(new, z), n + 1
+        def step(carry):
+            x, _, k = carry
+            new = x - matvec(x) + b
+            size = jnp.max(jnp.abs(new - x)) - settings.rtol * jnp.max(jnp.abs(new))
+            return new, size, k + 1
 
-        z, error, n = jax.lax.while_loop(keep_going, iterate, (z0, jnp.asarray(jnp.inf, dtype), jnp.array(0, jnp.int32)))
-        # The auxiliary outputs are returned as floats: custom_root gives
-        # them zero tangents of their own dtype, which must be inexact.
-        # NaN never compares below 1, so a non-finite iterate ends here too.
-        return z, (error, n.astype(dtype))
-
-    def linear_iteration(linear_residual, rhs):
-        # linear_residual(x) = (J − I)x with J = ∂fn, a contraction wherever
-        # the iteration above converged; x ← Jx − rhs = linear_residual(x) + x − rhs
-        # converges to the solution as fast. The same loop solves the
-        # transposed system in reverse mode, with the transposed map.
-        def keep_going(carry):
-            _, change, n = carry
-            return (change > 0) & (n < max_iterations)
-
-        def iterate(carry):
-            x, _, n = carry
-            new = jax.tree.map(lambda r, xi, b: r + xi - b, linear_residual(x), x, rhs)
-            return new, _relative_size(jax.tree.map(jnp.subtract, new, x), new, rtol), n + 1
-
-        start = jax.tree.map(jnp.negative, rhs)
-        x, _, _ = jax.lax.while_loop(keep_going, iterate, (start, jnp.asarray(jnp.inf, dtype), jnp.array(0, jnp.int32)))
+        x, _, _ = jax.lax.while_loop(keep_going, step, (b, jnp.asarray(jnp.inf, b.dtype), jnp.array(0, jnp.int32)))
         return x
 
-    def tangent_solve(linear_residual, rhs):
-        # One flat vector: custom_linear_solve's transpose needs every part of
-        # the right-hand side to be linear in the tangents, and some parts of
-        # a stage block (say L when η does not depend on the parameters) are
-        # constant zeros.
-        flat, unflatten = jax.flatten_util.ravel_pytree(rhs)
-
-        def flat_residual(x):
-            return jax.flatten_util.ravel_pytree(linear_residual(unflatten(x)))[0]
-
-        return unflatten(jax.lax.custom_linear_solve(flat_residual, flat, linear_iteration, linear_iteration))
-
-    residual = lambda z: jax.tree.map(jnp.subtract, fn(z), z)  # noqa: E731
-    z, (error, n) = jax.lax.custom_root(residual, guess, solve, tangent_solve, has_aux=True)
-    error, n = jax.lax.stop_gradient((error, n))
-    result = RESULTS.where(error < 1, RESULTS.successful, RESULTS.nonlinear_max_steps_reached)
-    return z, result, n.astype(jnp.int32)
-
-
-def _relative_size(change, reference, rtol):
-    """max|change| − rtol·max|reference| over all leaves: ≤ 0 once the linear
-    iteration has settled to `rtol` relative to its iterate."""
-    leaves = jax.tree.leaves(change)
-    biggest = functools.reduce(jnp.maximum, [jnp.max(jnp.abs(x)) for x in leaves])
-    scale = functools.reduce(jnp.maximum, [jnp.max(jnp.abs(x)) for x in jax.tree.leaves(reference)])
-    return biggest - rtol * scale
+    z_dot = unflatten(jax.lax.custom_linear_solve(identity_minus_jacobian, flat_rhs, iterate_linear, iterate_linear))
+    # The error and the count are not differentiable (the count's tangent is float0).
+    zero_aux = (jnp.zeros_like(error), np.zeros(np.shape(n), jax.dtypes.float0))
+    return (z, error, n), (z_dot, *zero_aux)
