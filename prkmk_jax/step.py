@@ -157,10 +157,21 @@ class PRKMK(eqx.Module):
         return y_next, result, iterations
 
     def step_with_increment(
-        self, vector_field: VectorField, t: Array, y: BundleElement, dt: Array, args: PyTree = None
+        self,
+        vector_field: VectorField,
+        t: Array,
+        y: BundleElement,
+        dt: Array,
+        args: PyTree = None,
+        field_at_start: AlgebraPair | None = None,
     ) -> tuple[BundleElement, AlgebraPair, RESULTS, Array]:
         """As `step`, also returning the algebra increment Uₙ₊₁ of the step
-        (yₙ₊₁ = `apply_increment(Uₙ₊₁, yₙ)`)."""
+        (yₙ₊₁ = `apply_increment(Uₙ₊₁, yₙ)`).
+
+        `field_at_start`, if given, is `generator(vector_field, t, y, args)`
+        already evaluated (say at the end of the previous step); it is used
+        where the step needs the field at (t, y): the implicit stages'
+        starting guess and explicit stages with U = 0 at c = 0."""
         self.check_vector_field(vector_field, t, y, args)
         tab = self.tableau
         dtype = jnp.result_type(*jax.tree.leaves(y))
@@ -171,6 +182,9 @@ class PRKMK(eqx.Module):
         def field(tt, Y):
             return self.generator(vector_field, tt, Y, args)
 
+        def field_at_yn():
+            return field(t, y) if field_at_start is None else tuple(jnp.asarray(x, dtype) for x in field_at_start)
+
         def stage_slope(i, first, second):
             # U_i = h (Σ_j a¹_ij K_j, Σ_j a²_ij L_j), Y_i = f(U_i)⊙yₙ, slope_i = df⁻¹(X_i).
             # The sums run over the tableau's nonzero entries only (static
@@ -178,8 +192,8 @@ class PRKMK(eqx.Module):
             u = _static_combination(dt, tab.a_first[i], first, zeros[0])
             v = _static_combination(dt, tab.a_second[i], second, zeros[1])
             tt = t + float(tab.c_first[i]) * dt
-            if u is None and v is None:
-                return field(tt, y)  # U_i = 0: Y_i = yₙ and df⁻¹_0 = I
+            if u is None and v is None:  # U_i = 0: Y_i = yₙ and df⁻¹_0 = I
+                return field_at_yn() if tab.c_first[i] == 0 else field(tt, y)
             U = (zeros[0] if u is None else u, zeros[1] if v is None else v)
             return self.slope(U, field(tt, self.apply_increment(U, y)))
 
@@ -195,7 +209,7 @@ class PRKMK(eqx.Module):
                 continue
             if initial_guess is None:
                 # df⁻¹_0 = I: the slope at U = 0 is the field at yₙ.
-                initial_guess = field(t, y)
+                initial_guess = field_at_yn()
 
             def block_slopes(block, idx=idx):
                 trial_first, trial_second = list(first), list(second)
@@ -264,11 +278,13 @@ def _fixed_point_iteration(fn, guess, rtol, atol, max_iterations, dtype):
     on the linearised map (`jax.lax.custom_linear_solve`): a few
     Jacobian-vector (or vector-Jacobian) products a step, no dense Jacobian.
     """
-    # The stage inputs fn closes over (yₙ, h, args, earlier slopes) become
-    # explicit arguments, so the JVP rule can differentiate with respect to them.
-    closed_fn, consts = jax.closure_convert(fn, guess)
+    # The stage inputs fn closes over (yₙ, h, args, earlier slopes; floats and
+    # integers alike) become explicit leaves of `closed_fn`, so the JVP rule can
+    # differentiate with respect to them and no tracer is captured.
+    closed_fn = eqx.filter_closure_convert(fn, guess)
     settings = _IterationSettings(float(rtol), float(atol), int(max_iterations), jnp.dtype(dtype))
-    z, error, n = _solve_fixed_point(closed_fn, settings, guess, *consts)
+    dynamic, static = eqx.partition(closed_fn, eqx.is_array)
+    z, error, n = _solve_fixed_point(settings, static, guess, dynamic)
     result = RESULTS.where(error < 1, RESULTS.successful, RESULTS.nonlinear_max_steps_reached)
     return z, result, n
 
@@ -283,7 +299,8 @@ class _IterationSettings(eqx.Module):
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
-def _solve_fixed_point(closed_fn, settings, guess, *consts):
+def _solve_fixed_point(settings, static, guess, dynamic):
+    closed_fn = eqx.combine(dynamic, static)
     rtol, atol, dtype = settings.rtol, settings.atol, settings.dtype
 
     def relative_change(new, old):
@@ -296,7 +313,7 @@ def _solve_fixed_point(closed_fn, settings, guess, *consts):
 
     def iterate(carry):
         z, _, n = carry
-        new = closed_fn(z, *consts)
+        new = closed_fn(z)
         return new, relative_change(new, z), n + 1
 
     # NaN never compares below 1, so a non-finite iterate ends the loop too.
@@ -305,16 +322,17 @@ def _solve_fixed_point(closed_fn, settings, guess, *consts):
 
 
 @_solve_fixed_point.defjvp
-def _solve_fixed_point_jvp(closed_fn, settings, primals, tangents):
-    guess, *consts = primals
-    _, *const_tangents = tangents  # the solution does not depend on the guess
-    z, error, n = _solve_fixed_point(closed_fn, settings, guess, *consts)
+def _solve_fixed_point_jvp(settings, static, primals, tangents):
+    guess, dynamic = primals
+    _, dynamic_dot = tangents  # the solution does not depend on the guess
+    z, error, n = _solve_fixed_point(settings, static, guess, dynamic)
+    closed_fn = eqx.combine(dynamic, static)
     # Named, so that a rematerialised step (`integrate` under reverse mode)
     # keeps the solution instead of iterating to it again.
     z = checkpoint_name(z, STAGE_SLOPES_NAME)
     # ż = ∂fn/∂z·ż + ∂fn/∂θ·θ̇, i.e. (I − ∂fn/∂z)ż = rhs.
-    _, rhs = jax.jvp(lambda *c: closed_fn(z, *c), tuple(consts), tuple(const_tangents))
-    _, linearised = jax.linearize(lambda w: closed_fn(w, *consts), z)
+    _, rhs = jax.jvp(lambda d: eqx.combine(d, static)(z), (dynamic,), (dynamic_dot,))
+    _, linearised = jax.linearize(closed_fn, z)
     # One flat vector: custom_linear_solve's transpose needs every part of
     # the right-hand side to be linear in the tangents, and some parts of
     # a stage block (say L when η does not depend on the parameters) are
