@@ -172,6 +172,22 @@ class PRKMK(eqx.Module):
         already evaluated (say at the end of the previous step); it is used
         where the step needs the field at (t, y): the implicit stages'
         starting guess and explicit stages with U = 0 at c = 0."""
+        y_next, u_next, result, iterations, _ = self.step_with_stages(vector_field, t, y, dt, args, field_at_start)
+        return y_next, u_next, result, iterations
+
+    def step_with_stages(
+        self,
+        vector_field: VectorField,
+        t: Array,
+        y: BundleElement,
+        dt: Array,
+        args: PyTree = None,
+        field_at_start: AlgebraPair | None = None,
+        stage_guesses: tuple[AlgebraPair, ...] | None = None,
+    ):
+        """As `step_with_increment`, also returning the stage slopes
+        ((K₁, L₁), …, (K_s, L_s)). `stage_guesses`, if given, are the implicit
+        stages' starting values (default: every slope starts at the field at yₙ)."""
         self.check_vector_field(vector_field, t, y, args)
         tab = self.tableau
         dtype = jnp.result_type(*jax.tree.leaves(y))
@@ -217,7 +233,10 @@ class PRKMK(eqx.Module):
                     trial_first[i], trial_second[i] = k, l
                 return tuple(stage_slope(i, trial_first, trial_second) for i in idx)
 
-            guess = tuple(initial_guess for _ in idx)
+            if stage_guesses is None:
+                guess = tuple(initial_guess for _ in idx)
+            else:
+                guess = tuple(tuple(jnp.asarray(x, dtype) for x in stage_guesses[i]) for i in idx)
             block, block_result, n = self._solve(block_slopes, guess, dtype)
             result = RESULTS.where(result == RESULTS.successful, block_result, result)
             iterations = iterations + n
@@ -230,7 +249,7 @@ class PRKMK(eqx.Module):
         y_next = self.apply_increment(u_next, y)
         finite = jnp.all(jnp.array([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(y_next)]))
         result = RESULTS.where((result == RESULTS.successful) & ~finite, RESULTS.nonfinite, result)
-        return y_next, u_next, result, iterations
+        return y_next, u_next, result, iterations, tuple(zip(first, second))
 
     def _solve(self, block_slopes, guess, dtype):
         """Solve block_slopes(K) = K for the slopes K of one implicit block;
