@@ -80,6 +80,12 @@ class PRKMKSolver(diffrax.AbstractSolver):
     `ForwardMode`. `BacksolveAdjoint` is refused — its backward solve hands
     the solver diffrax's `AdjointTerm`, which diffrax rejects as not a
     `PRKMKTerm` (its continuous adjoint treats the state as Euclidean).
+    For a known number of fixed steps, `RecursiveCheckpointAdjoint(
+    checkpoints=num_steps)` recomputes each step once in the backward pass;
+    diffrax's default keeps fewer checkpoints and recomputes more.
+
+    The solver state carries the previous step's field at its start and its
+    stage slopes: the implicit stages start from them as `integrate` does.
     """
 
     method: PRKMK
@@ -129,7 +135,7 @@ class PRKMKSolver(diffrax.AbstractSolver):
         if self.adaptive:
             # Two half steps: carried on, and their difference from the full
             # step (entrywise in the embedding) is the error estimate.
-            y_half, _, result_a, _ = method.step_with_increment(field, s0, y0, h / 2, args, field_at_start=x0)
+            y_half, _, result_a, _, _ = method.step_with_stages(field, s0, y0, h / 2, args, x0)
             y_next, _, result_b, _ = method.step_with_increment(field, s0 + h / 2, y_half, h / 2, args)
             y_error = jax.tree.map(jnp.subtract, y_next, y1)
             for r in (result_a, result_b):

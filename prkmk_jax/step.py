@@ -157,22 +157,11 @@ class PRKMK(eqx.Module):
         return y_next, result, iterations
 
     def step_with_increment(
-        self,
-        vector_field: VectorField,
-        t: Array,
-        y: BundleElement,
-        dt: Array,
-        args: PyTree = None,
-        field_at_start: AlgebraPair | None = None,
+        self, vector_field: VectorField, t: Array, y: BundleElement, dt: Array, args: PyTree = None
     ) -> tuple[BundleElement, AlgebraPair, RESULTS, Array]:
         """As `step`, also returning the algebra increment Uₙ₊₁ of the step
-        (yₙ₊₁ = `apply_increment(Uₙ₊₁, yₙ)`).
-
-        `field_at_start`, if given, is `generator(vector_field, t, y, args)`
-        already evaluated (say at the end of the previous step); it is used
-        where the step needs the field at (t, y): the implicit stages'
-        starting guess and explicit stages with U = 0 at c = 0."""
-        y_next, u_next, result, iterations, _ = self.step_with_stages(vector_field, t, y, dt, args, field_at_start)
+        (yₙ₊₁ = `apply_increment(Uₙ₊₁, yₙ)`)."""
+        y_next, u_next, result, iterations, _ = self.step_with_stages(vector_field, t, y, dt, args)
         return y_next, u_next, result, iterations
 
     def step_with_stages(
@@ -186,8 +175,14 @@ class PRKMK(eqx.Module):
         stage_guesses: tuple[AlgebraPair, ...] | None = None,
     ):
         """As `step_with_increment`, also returning the stage slopes
-        ((K₁, L₁), …, (K_s, L_s)). `stage_guesses`, if given, are the implicit
-        stages' starting values (default: every slope starts at the field at yₙ)."""
+        ((K₁, L₁), …, (K_s, L_s)).
+
+        `field_at_start`, if given, is `generator(vector_field, t, y, args)`
+        already evaluated; it is used where the step needs the field at
+        (t, y): the implicit stages' default starting guess and explicit
+        stages with U = 0 at c = 0. `stage_guesses`, if given, are the
+        implicit stages' starting values, one (K_i, L_i) per stage (default:
+        every slope starts at the field at yₙ)."""
         self.check_vector_field(vector_field, t, y, args)
         tab = self.tableau
         dtype = jnp.result_type(*jax.tree.leaves(y))

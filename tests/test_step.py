@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import empirical_order, random_rotation
+from prkmk_jax.step import stage_blocks
+from helpers import INERTIA, empirical_order, initial_state, random_rotation, rigid_body_field
 
 H = 0.1
 
@@ -163,3 +164,44 @@ def test_too_short_truncation_loses_order():
     solver = pk.PRKMK(pk.DirectProduct(pk.SO3), pk.Exp(truncation=0), pk.lobatto_iiia_iiib4, form="body")
     slope, errs = empirical_order(solver, t_end=1.0, steps=(10, 20, 40, 80))
     assert abs(slope - 2) < 0.3, (slope, errs)
+
+
+# --- starting guesses of the implicit stages -------------------------------------------
+@pytest.mark.parametrize("tab", [pk.stormer_verlet, pk.lobatto_iiia_iiib4, pk.symplectic_euler], ids=lambda t: t.name)
+def test_stage_guesses_change_the_iterations_not_the_step(tab):
+    """Any starting guess converges to the same stage slopes (to the stage
+    tolerance); the guess only changes how many iterations it takes."""
+    bundle = pk.Cotangent(pk.SO3)
+    solver = pk.PRKMK(bundle, pk.Exp(), tab, form="body")
+    field = rigid_body_field(bundle, "body")
+    y0 = initial_state(bundle)
+    args = jnp.asarray(INERTIA)
+    y_default, _, result, n_default, stages = solver.step_with_stages(field, 0.0, y0, H, args)
+    assert result == pk.RESULTS.successful
+    far = tuple((k + 0.3, l - 0.2) for k, l in stages)
+    y_far, _, _, n_far, _ = solver.step_with_stages(field, 0.0, y0, H, args, stage_guesses=far)
+    y_exact, _, _, n_exact, _ = solver.step_with_stages(field, 0.0, y0, H, args, stage_guesses=stages)
+    for y in (y_far, y_exact):
+        np.testing.assert_allclose(y.fiber, y_default.fiber, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(y.base.matrix, y_default.base.matrix, rtol=0, atol=1e-12)
+    # From the solution itself each implicit block confirms it in one iteration.
+    implicit_blocks = sum(implicit for _, implicit in stage_blocks(tab))
+    assert int(n_exact) == implicit_blocks and int(n_default) > implicit_blocks and int(n_far) > implicit_blocks
+
+
+def test_integrate_extrapolated_guesses_save_iterations():
+    """integrate starts each implicit stage from the previous step's slope
+    moved by the change of the field (O(h²)); the plain start is the field at
+    yₙ (O(h)). Same trajectory to the stage tolerance, fewer iterations."""
+    bundle = pk.Cotangent(pk.SO3)
+    solver = pk.PRKMK(bundle, pk.Exp(), pk.lobatto_iiia_iiib4, form="body")
+    field = rigid_body_field(bundle, "body")
+    y, args, h, steps = initial_state(bundle), jnp.asarray(INERTIA), 0.02, 50
+    traj = pk.integrate(solver, field, y, 0.0, h, steps, args, save_every=steps)
+    plain_iterations = 0
+    for n in range(steps):
+        y, result, iterations = solver.step(field, n * h, y, h, args)
+        assert result == pk.RESULTS.successful
+        plain_iterations += int(iterations)
+    np.testing.assert_allclose(traj.ys.fiber[-1], y.fiber, rtol=0, atol=1e-12)
+    assert int(traj.stats["num_iterations"]) < 0.9 * plain_iterations, (int(traj.stats["num_iterations"]), plain_iterations)
