@@ -189,6 +189,8 @@ class PRKMK(eqx.Module):
         dt = jnp.asarray(dt, dtype)
         t = jnp.asarray(t, dtype)
         zeros = self.bundle.algebra_zeros(y)
+        _check_pairs("field_at_start", None if field_at_start is None else (field_at_start,), zeros)
+        _check_pairs("stage_guesses", stage_guesses, zeros, tab.num_stages)
 
         def field(tt, Y):
             return self.generator(vector_field, tt, Y, args)
@@ -264,6 +266,22 @@ class PRKMK(eqx.Module):
                 lambda z, a: jax.tree.map(jnp.subtract, fn(z, a), z), solver, guess, max_steps=self.max_iterations, throw=False
             )
         return sol.value, RESULTS.promote(sol.result), sol.stats["num_steps"].astype(jnp.int32)
+
+
+def _check_pairs(name, pairs, zeros, count=None):
+    """Trace-time check that `pairs` is None or a sequence of `count` algebra
+    pairs (ξ, η) with the shapes of `zeros`."""
+    if pairs is None:
+        return
+    if not isinstance(pairs, (tuple, list)) or (count is not None and len(pairs) != count):
+        raise ValueError(f"{name} must be a tuple of {count or 1} algebra pairs (ξ, η), got {jax.tree.structure(pairs)}.")
+    for pair in pairs:
+        if not (isinstance(pair, (tuple, list)) and len(pair) == 2) or any(
+            tuple(jnp.shape(x)) != tuple(z.shape) for x, z in zip(pair, zeros)
+        ):
+            raise ValueError(
+                f"{name}: every entry must be a pair (ξ, η) of shapes {tuple(z.shape for z in zeros)}, got {jax.tree.map(jnp.shape, pair)}."
+            )
 
 
 def _static_combination(dt, coefficients, slopes, zero):

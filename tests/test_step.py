@@ -205,3 +205,16 @@ def test_integrate_extrapolated_guesses_save_iterations():
         plain_iterations += int(iterations)
     np.testing.assert_allclose(traj.ys.fiber[-1], y.fiber, rtol=0, atol=1e-12)
     assert int(traj.stats["num_iterations"]) < 0.9 * plain_iterations, (int(traj.stats["num_iterations"]), plain_iterations)
+
+
+def test_stage_guesses_of_the_wrong_structure_are_refused():
+    bundle = pk.Cotangent(pk.SO3)
+    solver = pk.PRKMK(bundle, pk.Exp(), pk.lobatto_iiia_iiib4, form="body")
+    field = rigid_body_field(bundle, "body")
+    y0, args, zero = initial_state(bundle), jnp.asarray(INERTIA), jnp.zeros(3)
+    with pytest.raises(ValueError, match="tuple of 3 algebra pairs"):
+        solver.step_with_stages(field, 0.0, y0, H, args, stage_guesses=((zero, zero),) * 2)
+    with pytest.raises(ValueError, match="every entry must be a pair"):
+        solver.step_with_stages(field, 0.0, y0, H, args, stage_guesses=((zero, jnp.zeros(4)),) * 3)
+    with pytest.raises(ValueError, match="field_at_start"):
+        solver.step_with_stages(field, 0.0, y0, H, args, field_at_start=(zero,))
