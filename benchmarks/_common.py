@@ -164,6 +164,18 @@ def prkmk_solver(tableau, coordinates="exp", adaptive=False, root_finder=None):
 FIELD = rb.unreduced_rigid_body(pk.Cotangent(pk.SO3))
 
 
+def integrate_final(method, steps, h):
+    """(Q₀, Π₀, inertia) -> (Q, Π, implicit iterations) after `steps` fixed
+    steps of size `h` of `prkmk_jax.integrate` with `method` on T*SO(3)."""
+
+    def run(q0, pi0, inertia):
+        y0 = pk.BundleElement(pk.SO3(q0), pi0)
+        traj = pk.integrate(method, FIELD, y0, 0.0, h, steps, inertia, save_every=steps)
+        return traj.ys.base.matrix[-1], traj.ys.fiber[-1], traj.stats["num_iterations"]
+
+    return run
+
+
 def _final(term, solver, to_state, split, adaptive, t_eval):
     """(q0, π0, t1, dt, rtol, inertia) -> ((Q, Π), num_steps) by diffeqsolve;
     dt and rtol are data, so a sweep compiles once. With `t_eval`, values at

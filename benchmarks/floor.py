@@ -176,15 +176,6 @@ def _fused_run(kernel, steps):
     return lambda q0, pi0, inertia: kernel(q0, pi0, inertia, steps)
 
 
-def _integrate_run(method, steps):
-    def run(q0, pi0, inertia):
-        y0 = pk.BundleElement(pk.SO3(q0), pi0)
-        traj = pk.integrate(method, C.FIELD, y0, 0.0, H, steps, inertia, save_every=steps)
-        return traj.ys.base.matrix[-1], traj.ys.fiber[-1], traj.stats["num_iterations"]
-
-    return run
-
-
 def _times(steps, dtype):
     """t0, t1, dt0 in the state's dtype: diffeqsolve promotes the state to the
     dtype of the times, so Python floats would make a float32 run float64."""
@@ -226,7 +217,7 @@ def compare(method_name, batch, dtype, steps, rounds):
     args = (jnp.asarray(qs, dtype), jnp.asarray(pis, dtype), jnp.asarray(C.INERTIA, dtype))
     columns = {
         "floor": _fused_run(kernel, steps),
-        "integrate": _integrate_run(method, steps),
+        "integrate": C.integrate_final(method, steps, H),
         "diffeqsolve": _diffeqsolve_run(method, steps),
     }
     if method_name == "SV":

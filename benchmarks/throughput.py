@@ -29,12 +29,11 @@ H = 0.01
 
 
 def _scan(method, steps):
+    final = C.integrate_final(method, steps, H)
+
     def run(q0, pi0, inertia):
-        y0 = pk.BundleElement(pk.SO3(q0), pi0)
-        traj = pk.integrate(
-            method, C.FIELD, y0, 0.0, H, steps, inertia, save_every=steps
-        )
-        return traj.ys.fiber[-1], traj.stats["num_iterations"]
+        _, pi, iterations = final(q0, pi0, inertia)
+        return pi, iterations
 
     return run
 

@@ -63,7 +63,8 @@ def integrate(
 
     Implicit stages start from the previous step's stage slopes, moved by
     the change of the field at the step's start (an O(h²) guess; the field
-    at yₙ alone is O(h)); they converge to the same tolerance either way.
+    at yₙ alone is O(h); `PRKMK.step_with_guesses`); they converge to the
+    same tolerance either way.
     """
     if not isinstance(solver, PRKMK):
         raise TypeError(f"solver must be a PRKMK, got {type(solver).__name__}.")
@@ -84,17 +85,10 @@ def integrate(
     solver.check_vector_field(vector_field, t0, y0, args)
 
     def one_step(carry, n):
-        y, result, total, worst, previous_field, previous_stages = carry
-        t = t0 + n * dt
-        field_now = solver.generator(vector_field, t, y, args)
-        # Each stage slope moves by about as much as the field at the step's
-        # start did over the last step: Kᵢ ≈ Kᵢ_prev + X(tₙ, yₙ) − X(tₙ₋₁, yₙ₋₁), an
-        # O(h²) starting guess where X(tₙ, yₙ) alone is O(h).
-        change = jax.tree.map(jnp.subtract, field_now, previous_field)
-        guesses = tuple(jax.tree.map(jnp.add, stage, change) for stage in previous_stages)
-        y_next, _, step_result, iters, stages = solver.step_with_stages(vector_field, t, y, dt, args, field_now, guesses)
+        y, result, total, worst, guesses = carry
+        y_next, _, step_result, iters, guesses = solver.step_with_guesses(vector_field, t0 + n * dt, y, dt, args, guesses)
         result = RESULTS.where(result == RESULTS.successful, step_result, result)
-        return (y_next, result, total + iters, jnp.maximum(worst, iters), field_now, stages), None
+        return (y_next, result, total + iters, jnp.maximum(worst, iters), guesses), None
 
     # Under reverse mode a scanned step would store every intermediate of
     # every step (hundreds of per-trajectory scalars); rematerialised, it
@@ -109,11 +103,9 @@ def integrate(
         return carry, carry[0]
 
     zero = jnp.array(0, jnp.int32)
-    field0 = solver.generator(vector_field, t0, y0, args)
-    # At the first step every guess is the field at y0 (no earlier step).
-    init = (y0, RESULTS.successful, zero, zero, field0, tuple(field0 for _ in range(solver.tableau.num_stages)))
+    init = (y0, RESULTS.successful, zero, zero, solver.initial_guesses(vector_field, t0, y0, args))
     num_saves = num_steps // save_every
-    (_, result, total, worst, _, _), saved = jax.lax.scan(one_save, init, save_every * jnp.arange(num_saves))
+    (_, result, total, worst, _), saved = jax.lax.scan(one_save, init, save_every * jnp.arange(num_saves))
     ys = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), y0, saved)
     ts = t0 + dt * save_every * jnp.arange(num_saves + 1, dtype=dtype)
     if throw:

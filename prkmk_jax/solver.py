@@ -114,11 +114,10 @@ class PRKMKSolver(diffrax.AbstractSolver):
         method, field = self.method, _user_clock(terms)
         method.bundle.check(y0)  # static type/shape errors
         method.check_vector_field(field, field.direction * t0, y0, args)
-        # The solver state is the previous step's field at its start and its
-        # stage slopes, for the implicit stages' starting guesses (as in
-        # `integrate`); at the first step every guess is the field at y0.
-        x0 = method.generator(field, field.direction * t0, y0, args)
-        return x0, tuple(x0 for _ in range(method.tableau.num_stages))
+        # The solver state is what `PRKMK.step_with_guesses` carries: the
+        # previous step's field at its start and its stage slopes, the implicit
+        # stages' starting guesses (as in `integrate`).
+        return method.initial_guesses(field, field.direction * t0, y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del made_jump  # the carried slopes are only a starting guess
@@ -126,11 +125,8 @@ class PRKMKSolver(diffrax.AbstractSolver):
         direction = field.direction
         s0, s1 = direction * t0, direction * t1
         h = s1 - s0
-        x0 = method.generator(field, s0, y0, args)
-        previous_field, previous_stages = solver_state
-        change = jax.tree.map(jnp.subtract, x0, previous_field)
-        guesses = tuple(jax.tree.map(jnp.add, stage, change) for stage in previous_stages)
-        y1, increment, result, _, stages = method.step_with_stages(field, s0, y0, h, args, x0, guesses)
+        y1, increment, result, _, carried = method.step_with_guesses(field, s0, y0, h, args, solver_state)
+        x0 = carried[0]  # the field at (s0, y0)
         y_next, y_error = y1, None
         if self.adaptive:
             # Two half steps: carried on, and their difference from the full
@@ -146,7 +142,7 @@ class PRKMKSolver(diffrax.AbstractSolver):
         slope0 = jax.tree.map(lambda x: direction * x, x0)  # df⁻¹_0 = I
         slope1 = jax.tree.map(lambda x: direction * x, method.slope(increment, x1))
         dense_info = dict(y0=y0, increment=increment, slope0=slope0, slope1=slope1, method=method)
-        return y_next, y_error, dense_info, (x0, stages), result
+        return y_next, y_error, dense_info, carried, result
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)

@@ -164,6 +164,31 @@ class PRKMK(eqx.Module):
         y_next, u_next, result, iterations, _ = self.step_with_stages(vector_field, t, y, dt, args)
         return y_next, u_next, result, iterations
 
+    def initial_guesses(self, vector_field: VectorField, t: Array, y: BundleElement, args: PyTree = None):
+        """The state `step_with_guesses` carries, before the first step: the
+        field X(t₀, y₀), and the same field as every stage slope (so the first
+        step starts from the field at y₀, as `step` does)."""
+        x = self.generator(vector_field, t, y, args)
+        return x, tuple(x for _ in range(self.tableau.num_stages))
+
+    def step_with_guesses(
+        self, vector_field: VectorField, t: Array, y: BundleElement, dt: Array, args: PyTree, carried
+    ) -> tuple[BundleElement, AlgebraPair, RESULTS, Array, Any]:
+        """As `step_with_increment`, with the implicit stages started from the
+        previous step's stage slopes, each moved as much as the field at the
+        step's start moved over that step: Kᵢ ≈ Kᵢ_prev + X(tₙ, yₙ) − X(tₙ₋₁,
+        yₙ₋₁), an O(h²) guess where X(tₙ, yₙ) alone is O(h). They converge to
+        the same tolerance either way. `carried` is what the previous call
+        returned last (or `initial_guesses`); returns (y_next, increment,
+        result, iterations, carried for the next step), whose first entry
+        is the field at (t, y)."""
+        previous_field, previous_stages = carried
+        field_now = self.generator(vector_field, t, y, args)
+        change = jax.tree.map(jnp.subtract, field_now, previous_field)
+        guesses = tuple(jax.tree.map(jnp.add, stage, change) for stage in previous_stages)
+        y_next, u_next, result, iterations, stages = self.step_with_stages(vector_field, t, y, dt, args, field_now, guesses)
+        return y_next, u_next, result, iterations, (field_now, stages)
+
     def step_with_stages(
         self,
         vector_field: VectorField,
