@@ -148,6 +148,10 @@ class AbstractBundle(eqx.Module):
         """The Cayley map of the bundle (§4.4)."""
 
     @abc.abstractmethod
+    def cayley_inverse(self, a: BundleElement) -> AlgebraPair:
+        """The U with cay(U) = a (the inverse of `cayley`, as `log` is of `exp`)."""
+
+    @abc.abstractmethod
     def dcayley_inv(self, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
         """Exact dcay⁻¹_U(X)."""
 
@@ -189,6 +193,9 @@ class DirectProduct(AbstractBundle):
     def cayley(self, U):
         return BundleElement(self.base.cayley(U[0]), U[1])
 
+    def cayley_inverse(self, a):
+        return a.base.cayley_inverse(), a.fiber
+
     def dcayley_inv(self, U, X):
         return self.base.dcayley_inv(U[0], X[0]), X[1]
 
@@ -225,6 +232,9 @@ class Cartesian(AbstractBundle):
 
     def cayley(self, U):
         return BundleElement(self.base.cayley(U[0]), self.base.cayley(U[1]))
+
+    def cayley_inverse(self, a):
+        return a.base.cayley_inverse(), a.fiber.cayley_inverse()
 
     def dcayley_inv(self, U, X):
         return self.base.dcayley_inv(U[0], X[0]), self.base.dcayley_inv(U[1], X[1])
@@ -287,6 +297,11 @@ class AbstractSemidirect(AbstractBundle):
     def cayley(self, U):
         u, v = U
         return BundleElement(self.base.cayley(u), self._cayley_fiber(u, v))
+
+    def cayley_inverse(self, a):
+        # The fiber of cay(u, v) is (I + α ad_u)⁻¹ v with α = ±½ (`_cayley_fiber`).
+        u = a.base.cayley_inverse()
+        return u, a.fiber - 0.5 * self._sign() * self.base.bracket(u, a.fiber)
 
     def dcayley_inv(self, U, X):
         # Differentiate cay(U + tV)·cay(U)⁻¹ with w = fiber of cay(U) and

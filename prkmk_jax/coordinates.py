@@ -34,6 +34,10 @@ class AbstractCoordinates(eqx.Module):
         """f(U)."""
 
     @abc.abstractmethod
+    def inverse_map(self, bundle: AbstractBundle, g: BundleElement) -> AlgebraPair:
+        """f⁻¹(g): the U near 0 with f(U) = g."""
+
+    @abc.abstractmethod
     def apply(self, bundle: AbstractBundle, U: AlgebraPair, y: BundleElement, form: Literal["space", "body"]) -> BundleElement:
         """y·f(U) (`form="body"`) or f(U)·y (`"space"`)."""
 
@@ -75,6 +79,9 @@ class Exp(AbstractCoordinates):
 
     def map(self, bundle, U):
         return bundle.exp(U)
+
+    def inverse_map(self, bundle, g):
+        return bundle.log(g)
 
     def apply(self, bundle, U, y, form):
         return bundle.exp_multiply(U, y, form)
@@ -119,6 +126,10 @@ class Cayley(AbstractCoordinates):
     def map(self, bundle, U):
         self.check_bundle(bundle)
         return bundle.cayley(U)
+
+    def inverse_map(self, bundle, g):
+        self.check_bundle(bundle)
+        return bundle.cayley_inverse(g)
 
     def apply(self, bundle, U, y, form):
         self.check_bundle(bundle)

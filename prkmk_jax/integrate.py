@@ -6,7 +6,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, PyTree
 
 from .bundles import BundleElement
-from .step import PRKMK, RESULTS, STAGE_SLOPES_NAME, VectorField
+from .method import RESULTS, AbstractMethod, VectorField
+from .step import STAGE_SLOPES_NAME
 
 
 class Trajectory(eqx.Module):
@@ -41,7 +42,7 @@ def _check_args(args):
 
 
 def integrate(
-    solver: PRKMK,
+    solver: AbstractMethod,
     vector_field: VectorField,
     y0: BundleElement,
     t0: float | Array,
@@ -61,13 +62,15 @@ def integrate(
     implicit stage or a non-finite state raises at run time; otherwise it is
     reported in `Trajectory.result`.
 
-    Implicit stages start from the previous step's stage slopes, moved by
-    the change of the field at the step's start (an O(h²) guess; the field
-    at yₙ alone is O(h); `PRKMK.step_with_guesses`); they converge to the
-    same tolerance either way.
+    `solver` is any `AbstractMethod`: a `PRKMK` or a method built from
+    them (`Composition`, `Symmetrized`, `Adjoint`). Implicit stages start
+    from the previous step's stage slopes, moved by the change of the field
+    at the step's start (an O(h²) guess; the field at yₙ alone is O(h);
+    `PRKMK.step_with_guesses`); they converge to the same tolerance either
+    way.
     """
-    if not isinstance(solver, PRKMK):
-        raise TypeError(f"solver must be a PRKMK, got {type(solver).__name__}.")
+    if not isinstance(solver, AbstractMethod):
+        raise TypeError(f"solver must be a PRKMK method (or a composition of them), got {type(solver).__name__}.")
     for name, value, low in (("num_steps", num_steps, 1), ("save_every", save_every, 1)):
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise ValueError(f"{name} must be an int ≥ {low}, got {value!r}.")

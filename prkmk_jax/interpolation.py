@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, PyTree
 
 from .bundles import AlgebraPair, BundleElement
-from .step import PRKMK
+from .method import AbstractMethod
 
 
 class OnGroupInterpolation(diffrax.AbstractLocalInterpolation):
@@ -26,7 +26,7 @@ class OnGroupInterpolation(diffrax.AbstractLocalInterpolation):
     increment: AlgebraPair
     slope0: AlgebraPair
     slope1: AlgebraPair
-    method: PRKMK
+    method: AbstractMethod
 
     def evaluate(self, t0, t1=None, left: bool = True) -> PyTree[Array]:
         del left

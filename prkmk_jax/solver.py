@@ -16,7 +16,7 @@ from jaxtyping import Array
 
 from .bundles import AlgebraPair, BundleElement
 from .interpolation import OnGroupInterpolation
-from .step import PRKMK, RESULTS
+from .method import RESULTS, AbstractMethod
 
 
 class PRKMKTerm(diffrax.AbstractTerm):
@@ -88,7 +88,7 @@ class PRKMKSolver(diffrax.AbstractSolver):
     stage slopes: the implicit stages start from them as `integrate` does.
     """
 
-    method: PRKMK
+    method: AbstractMethod
     adaptive: bool = eqx.field(static=True, default=False)
     """Estimate the local error by step doubling (one step of h against two of
     h/2), for `PIDController`, and carry the two-half-step state on (as
@@ -100,8 +100,8 @@ class PRKMKSolver(diffrax.AbstractSolver):
     interpolation_cls: ClassVar = OnGroupInterpolation
 
     def __check_init__(self):
-        if not isinstance(self.method, PRKMK):
-            raise TypeError(f"PRKMKSolver wraps a PRKMK method, got {type(self.method).__name__}.")
+        if not isinstance(self.method, AbstractMethod):
+            raise TypeError(f"PRKMKSolver wraps a PRKMK method (or a composition of them), got {type(self.method).__name__}.")
 
     def order(self, terms):
         return self.method.order
@@ -126,12 +126,12 @@ class PRKMKSolver(diffrax.AbstractSolver):
         s0, s1 = direction * t0, direction * t1
         h = s1 - s0
         y1, increment, result, _, carried = method.step_with_guesses(field, s0, y0, h, args, solver_state)
-        x0 = carried[0]  # the field at (s0, y0)
+        x0 = method.start_field(carried)  # the field at (s0, y0)
         y_next, y_error = y1, None
         if self.adaptive:
             # Two half steps: carried on, and their difference from the full
             # step (entrywise in the embedding) is the error estimate.
-            y_half, _, result_a, _, _ = method.step_with_stages(field, s0, y0, h / 2, args, x0)
+            y_half, _, result_a, _ = method.step_with_increment(field, s0, y0, h / 2, args)
             y_next, _, result_b, _ = method.step_with_increment(field, s0 + h / 2, y_half, h / 2, args)
             y_error = jax.tree.map(jnp.subtract, y_next, y1)
             for r in (result_a, result_b):

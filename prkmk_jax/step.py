@@ -19,10 +19,8 @@ fixed-point iteration (or any optimistix root finder) to `rtol`/`atol` within
 """
 
 import functools
-from collections.abc import Callable
 from typing import Any, Literal
 
-import diffrax
 import equinox as eqx
 import jax
 import jax.flatten_util
@@ -34,11 +32,10 @@ from jaxtyping import Array, PyTree
 
 from .bundles import AbstractBundle, AlgebraPair, BundleElement
 from .coordinates import AbstractCoordinates, Exp
+from .method import RESULTS, AbstractMethod, VectorField
 from .tableaus import PartitionedTableau, stormer_verlet
 
-RESULTS = diffrax.RESULTS
 STAGE_SLOPES_NAME = "prkmk_stage_slopes"
-VectorField = Callable[[Array, BundleElement, PyTree], AlgebraPair]
 
 
 def stage_blocks(tableau: PartitionedTableau) -> list[tuple[tuple[int, ...], bool]]:
@@ -60,11 +57,7 @@ def stage_blocks(tableau: PartitionedTableau) -> list[tuple[tuple[int, ...], boo
     return blocks
 
 
-def _tree_scale(alpha, tree):
-    return jax.tree.map(lambda x: alpha * x, tree)
-
-
-class PRKMK(eqx.Module):
+class PRKMK(AbstractMethod):
     """A partitioned Runge–Kutta–Munthe-Kaas method (Algorithm 4.2).
 
     **Arguments:**
@@ -113,56 +106,8 @@ class PRKMK(eqx.Module):
     def order(self) -> int:
         return self.tableau.order
 
-    # --- pieces of Algorithm 4.2 ----------------------------------------------------
-    def apply_increment(self, U: AlgebraPair, y: BundleElement) -> BundleElement:
-        """f(U)·y (space form) or y·f(U) (body form)."""
-        return self.coordinates.apply(self.bundle, U, y, self.form)
-
-    def slope(self, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
-        """U' for the generator X at the point reached by the increment U:
-        df⁻¹_U(X) (space form) or df⁻¹_{−U}(X) (body form), truncated as
-        the coordinates say."""
-        if self.form == "body":
-            U = _tree_scale(-1.0, U)
-        return self.coordinates.inverse_differential(self.bundle, U, X, self.order)
-
-    def generator(self, vector_field: VectorField, t, y: BundleElement, args) -> AlgebraPair:
-        """(ξ, η) = vector_field(t, y, args) in the state's dtype, whatever
-        precision the user's field returns."""
-        zeros = self.bundle.algebra_zeros(y)
-        return tuple(jnp.asarray(x, z.dtype) for x, z in zip(vector_field(t, y, args), zeros))
-
-    def check_vector_field(self, vector_field: VectorField, t, y: BundleElement, args) -> None:
-        """Trace-time check that `vector_field(t, y, args)` returns a pair
-        (ξ, η) of algebra arrays of the right shapes."""
-        out = jax.eval_shape(vector_field, t, y, args)
-        zeros = self.bundle.algebra_zeros(y)
-        if not (isinstance(out, (tuple, list)) and len(out) == 2):
-            raise ValueError(
-                f"the vector field must return a pair (ξ, η) of algebra elements, got {jax.tree.structure(out)}."
-            )
-        for name, got, want in zip(("ξ", "η"), out, zeros):
-            if not hasattr(got, "shape") or tuple(got.shape) != tuple(want.shape):
-                raise ValueError(
-                    f"the vector field returned {name} with shape {getattr(got, 'shape', type(got))}, "
-                    f"but the algebra of {type(self.bundle).__name__}({self.bundle.base.__name__}) at this state has shape {want.shape}."
-                )
-
-    def step(
-        self, vector_field: VectorField, t: Array, y: BundleElement, dt: Array, args: PyTree = None
-    ) -> tuple[BundleElement, RESULTS, Array]:
-        """One step from (t, y) to t + dt. Returns (y_next, result, iterations),
-        `iterations` being the number of implicit iterations taken."""
-        y_next, _, result, iterations = self.step_with_increment(vector_field, t, y, dt, args)
-        return y_next, result, iterations
-
-    def step_with_increment(
-        self, vector_field: VectorField, t: Array, y: BundleElement, dt: Array, args: PyTree = None
-    ) -> tuple[BundleElement, AlgebraPair, RESULTS, Array]:
-        """As `step`, also returning the algebra increment Uₙ₊₁ of the step
-        (yₙ₊₁ = `apply_increment(Uₙ₊₁, yₙ)`)."""
-        y_next, u_next, result, iterations, _ = self.step_with_stages(vector_field, t, y, dt, args)
-        return y_next, u_next, result, iterations
+    def start_field(self, carried):
+        return carried[0]
 
     def initial_guesses(self, vector_field: VectorField, t: Array, y: BundleElement, args: PyTree = None):
         """The state `step_with_guesses` carries, before the first step: the
@@ -199,8 +144,8 @@ class PRKMK(eqx.Module):
         field_at_start: AlgebraPair | None = None,
         stage_guesses: tuple[AlgebraPair, ...] | None = None,
     ):
-        """As `step_with_increment`, also returning the stage slopes
-        ((K₁, L₁), …, (K_s, L_s)).
+        """One step from (t, y) to t + dt. Returns (y_next, increment, result,
+        iterations, stage slopes ((K₁, L₁), …, (K_s, L_s))).
 
         `field_at_start`, if given, is `generator(vector_field, t, y, args)`
         already evaluated; it is used where the step needs the field at
@@ -227,8 +172,8 @@ class PRKMK(eqx.Module):
             # U_i = h (Σ_j a¹_ij K_j, Σ_j a²_ij L_j), Y_i = f(U_i)⊙yₙ, slope_i = df⁻¹(X_i).
             # The sums run over the tableau's nonzero entries only (static
             # numbers), so XLA fuses them with the stage's arithmetic.
-            u = _static_combination(dt, tab.a_first[i], first, zeros[0])
-            v = _static_combination(dt, tab.a_second[i], second, zeros[1])
+            u = static_combination(dt, tab.a_first[i], first, zeros[0])
+            v = static_combination(dt, tab.a_second[i], second, zeros[1])
             tt = t + float(tab.c_first[i]) * dt
             if u is None and v is None:  # U_i = 0: Y_i = yₙ and df⁻¹_0 = I
                 return field_at_yn() if tab.c_first[i] == 0 else field(tt, y)
@@ -259,23 +204,24 @@ class PRKMK(eqx.Module):
                 guess = tuple(initial_guess for _ in idx)
             else:
                 guess = tuple(tuple(jnp.asarray(x, dtype) for x in stage_guesses[i]) for i in idx)
-            block, block_result, n = self._solve(block_slopes, guess, dtype)
+            block, block_result, n = self.solve_implicit(block_slopes, guess, dtype)
             result = RESULTS.where(result == RESULTS.successful, block_result, result)
             iterations = iterations + n
             for i, (k, l) in zip(idx, block):
                 first[i], second[i] = k, l
 
-        u_next = _static_combination(dt, tab.b_first, first, zeros[0])
-        v_next = _static_combination(dt, tab.b_second, second, zeros[1])
+        u_next = static_combination(dt, tab.b_first, first, zeros[0])
+        v_next = static_combination(dt, tab.b_second, second, zeros[1])
         u_next = (zeros[0] if u_next is None else u_next, zeros[1] if v_next is None else v_next)
         y_next = self.apply_increment(u_next, y)
         finite = jnp.all(jnp.array([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(y_next)]))
         result = RESULTS.where((result == RESULTS.successful) & ~finite, RESULTS.nonfinite, result)
         return y_next, u_next, result, iterations, tuple(zip(first, second))
 
-    def _solve(self, block_slopes, guess, dtype):
-        """Solve block_slopes(K) = K for the slopes K of one implicit block;
-        returns (K, result, iterations)."""
+    def solve_implicit(self, block_slopes, guess, dtype):
+        """Solve block_slopes(K) = K for the slopes K of an implicit block
+        from `guess`, with this method's root finder and tolerances; returns
+        (K, result, iterations)."""
         eps = float(jnp.finfo(dtype).eps)
         default_tol = max(1e-12, 50 * eps)
         rtol = default_tol if self.rtol is None else self.rtol
@@ -309,7 +255,7 @@ def _check_pairs(name, pairs, zeros, count=None):
             )
 
 
-def _static_combination(dt, coefficients, slopes, zero):
+def static_combination(dt, coefficients, slopes, zero):
     """dt·Σ_j coefficients[j]·slopes[j] over the nonzero (static) coefficients,
     or None when all are zero."""
     acc = None

@@ -176,4 +176,33 @@ lobatto_iiia_iiib4 = PartitionedTableau(
 )
 """3-stage Lobatto IIIA–IIIB pair, order 4, symplectic."""
 
-ALL_TABLEAUS = (symplectic_euler, symplectic_euler_adjoint, stormer_verlet, stormer_verlet_adjoint, lobatto_iiia_iiib4)
+_R5 = np.sqrt(5.0)
+lobatto_iiia_iiib6 = PartitionedTableau(
+    "Lobatto IIIA–IIIB, 4 stages",
+    a_first=np.array([
+        [0.0, 0.0, 0.0, 0.0],
+        [(11 + _R5) / 120, (25 - _R5) / 120, (25 - 13 * _R5) / 120, (-1 + _R5) / 120],
+        [(11 - _R5) / 120, (25 + 13 * _R5) / 120, (25 + _R5) / 120, (-1 - _R5) / 120],
+        [1 / 12, 5 / 12, 5 / 12, 1 / 12],
+    ]),
+    b_first=np.array([1 / 12, 5 / 12, 5 / 12, 1 / 12]),
+    c_first=np.array([0.0, (5 - _R5) / 10, (5 + _R5) / 10, 1.0]),
+    a_second=np.array([
+        [1 / 12, (-1 - _R5) / 24, (-1 + _R5) / 24, 0.0],
+        [1 / 12, (25 + _R5) / 120, (25 - 13 * _R5) / 120, 0.0],
+        [1 / 12, (25 + 13 * _R5) / 120, (25 - _R5) / 120, 0.0],
+        [1 / 12, (11 - _R5) / 24, (11 + _R5) / 24, 0.0],
+    ]),
+    b_second=np.array([1 / 12, 5 / 12, 5 / 12, 1 / 12]),
+    c_second=np.array([0.0, (5 - _R5) / 10, (5 + _R5) / 10, 1.0]),
+    order=6,
+)
+"""4-stage Lobatto IIIA–IIIB pair, order 6, symplectic (Hairer, Lubich &
+Wanner, Geometric Numerical Integration, §II.2.2 and §VI.4; the Lobatto
+IIIA and IIIB coefficients of Hairer & Wanner, Solving ODEs II, §IV.5). Its
+order conditions (every bicoloured tree up to order 6) are checked on
+construction, like every tableau's."""
+
+ALL_TABLEAUS = (
+    symplectic_euler, symplectic_euler_adjoint, stormer_verlet, stormer_verlet_adjoint, lobatto_iiia_iiib4, lobatto_iiia_iiib6
+)

@@ -143,3 +143,30 @@ def test_paper_printed_semidirect_dcayley_inv_holds_on_so3_only(trivialization):
         assert _max_diff(bundle.dcayley_inv(U, X), V) < 1e-12
     assert residuals[pk.SO3] < 1e-12
     assert residuals[pk.SOn] > 1e-4
+
+
+@pytest.mark.parametrize("coords_name", COORDINATES)
+@pytest.mark.parametrize("name", BUNDLES)
+@pytest.mark.parametrize("scale", [1e-7, 0.3, 1.0])
+def test_inverse_map_inverts_the_map(name, coords_name, scale):
+    """f⁻¹(f(U)) = U, and a method's `increment_between` recovers the
+    increment of y ↦ f(U)·y (space form) and y ↦ y·f(U) (body form)."""
+    bundle, coords = BUNDLES[name], COORDINATES[coords_name]
+    rng = np.random.default_rng(11)
+    U = bundle_algebra(bundle, scale * rng.normal(size=6), scale * rng.normal(size=6))
+    assert _max_diff(coords.inverse_map(bundle, coords.map(bundle, U)), U) < 1e-12
+    y = coords.map(bundle, bundle_algebra(bundle, rng.normal(size=6), rng.normal(size=6)))
+    for form in ("space", "body"):
+        method = pk.PRKMK(bundle, coords, form=form)
+        moved = method.apply_increment(U, y)
+        assert _max_diff(method.increment_between(y, moved), U) < 1e-11
+
+
+def test_so3_cayley_inverse_matches_the_matrix_formula():
+    """cay⁻¹(R) = 2(R + I)⁻¹(R − I) for SO(3) in vector form and for SO(n)."""
+    rng = np.random.default_rng(3)
+    for u in rng.normal(size=(5, 3)):
+        r = pk.SO3.cayley(jnp.asarray(u)).matrix
+        matrix_form = 2 * np.linalg.solve(np.asarray(r) + np.eye(3), np.asarray(r) - np.eye(3))
+        np.testing.assert_allclose(pk.hat(pk.SO3(r).cayley_inverse()), matrix_form, atol=1e-13)
+        np.testing.assert_allclose(pk.SOn(r).cayley_inverse(), matrix_form, atol=1e-13)

@@ -124,15 +124,23 @@ REPRESENTATIONS = {
 # methods have large error constants. The symmetric rigid body (G×G) at order
 # 4 needs finer steps: with Cayley its local slopes over h = 1/10 … 1/80 are
 # 3.46, 3.71, 3.85 (pre-asymptotic), over h = 1/40 … 1/320 they are ≥ 3.85.
-GRIDS = {1: (0.5, (200, 400, 800, 1600)), 2: (1.0, (40, 80, 160, 320)), 4: (1.0, (10, 20, 40, 80))}
-CARTESIAN_ORDER4_GRID = (1.0, (40, 80, 160, 320))
+GRIDS = {1: (0.5, (200, 400, 800, 1600)), 2: (1.0, (40, 80, 160, 320)), 4: (1.0, (10, 20, 40, 80)), 6: (1.0, (8, 16, 32))}
+CARTESIAN_GRIDS = {4: (1.0, (40, 80, 160, 320)), 6: (1.0, (5, 10, 20))}
+# Lobatto IIIA–IIIB 6 with Exp()'s default truncation on the left-trivialised
+# bundles, where the free body has η ≡ 0: the error falls as h^6.9 (h^7.2 at
+# T = 2), its h⁶ term all but cancelled; the exact dexp⁻¹ shows h⁶
+# (test_empirical_order_exact_dexp_inv, tests/test_composed.py).
+AT_LEAST_DECLARED = {("semidirect-left", "Exp", 6), ("cotangent", "Exp", 6)}
 
 
 def _assert_declared_order(rep, coords, tab, form):
     solver = pk.PRKMK(REPRESENTATIONS[rep], coords, tab, form=form)
-    t_end, steps = CARTESIAN_ORDER4_GRID if (rep == "cartesian" and tab.order == 4) else GRIDS[tab.order]
+    t_end, steps = CARTESIAN_GRIDS[tab.order] if (rep == "cartesian" and tab.order in CARTESIAN_GRIDS) else GRIDS[tab.order]
     slope, errs = empirical_order(solver, t_end=t_end, steps=steps)
-    assert abs(slope - tab.order) <= 0.15, (slope, errs)
+    if (rep, type(coords).__name__, tab.order) in AT_LEAST_DECLARED and form == "body":
+        assert slope >= tab.order - 0.15, (slope, errs)
+    else:
+        assert abs(slope - tab.order) <= 0.15, (slope, errs)
 
 
 @pytest.mark.parametrize("tab", pk.tableaus.ALL_TABLEAUS, ids=lambda t: t.name)

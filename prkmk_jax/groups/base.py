@@ -108,6 +108,11 @@ class AbstractQuadraticGroup(AbstractLieGroup):
     def cayley(cls, u: Array) -> Self:
         """cay(u) = (1 − u/2)⁻¹(1 + u/2)."""
 
+    @abc.abstractmethod
+    def cayley_inverse(self) -> Array:
+        """cay⁻¹(g) = 2(g + 1)⁻¹(g − 1), the inverse of `cayley` (defined where
+        g + 1 is invertible: rotation angles < π)."""
+
     @classmethod
     @abc.abstractmethod
     def dcayley(cls, u: Array, v: Array) -> Array:

@@ -221,6 +221,13 @@ class SO3(AbstractQuadraticGroup):
         # û + û²/2 = û + (uuᵀ − θ² I)/2
         return cls(_eye_plus(1.0 - 0.5 * k * t2, k, 0.5 * k, u))
 
+    def cayley_inverse(self):
+        """cay⁻¹(R) = 2 vee(R − Rᵀ)/(1 + tr R): for R = cay(u), R − Rᵀ = 2kû and
+        1 + tr R = 4k with k = 4/(4 + θ²)."""
+        r = self.matrix
+        trace = r[..., 0, 0] + r[..., 1, 1] + r[..., 2, 2]
+        return 2.0 * vee(r - jnp.swapaxes(r, -1, -2)) / (1.0 + trace)[..., None]
+
     @classmethod
     def dcayley(cls, u, v):
         """dcay_u v = 4/(4 + θ²) (v + ½ u×v)."""

@@ -126,6 +126,12 @@ class SOn(AbstractQuadraticGroup):
         eye = _eye_like(u)
         return cls(jnp.linalg.solve(eye - 0.5 * u, eye + 0.5 * u))
 
+    def cayley_inverse(self):
+        r = self.matrix
+        eye = _eye_like(r)
+        # (R + 1)⁻¹ and R − 1 commute; the solve keeps the result skew up to round-off.
+        return 2.0 * jnp.linalg.solve(r + eye, r - eye)
+
     @classmethod
     def dcayley(cls, u, v):
         eye = _eye_like(u)

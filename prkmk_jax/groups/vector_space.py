@@ -71,6 +71,9 @@ class VectorSpace(AbstractQuadraticGroup):
     def cayley(cls, u) -> Self:
         return cls(u)
 
+    def cayley_inverse(self):
+        return self.value
+
     @classmethod
     def dcayley(cls, u, v):
         return v

@@ -1,0 +1,133 @@
+"""What a one-step method on a bundle group offers the drivers.
+
+`integrate` and `PRKMKSolver` know a method only through `AbstractMethod`:
+a step that carries its implicit stages' starting guesses from one step to
+the next, the coordinate map its increments live in (for dense output), and
+the pieces shared by every method (the generator in the state's dtype, the
+vector-field check). `PRKMK` (Algorithm 4.2, `step.py`) is one; the methods
+made of other methods' steps (`composed.py`: adjoints, symmetrised methods,
+compositions) are the others.
+"""
+
+import abc
+from collections.abc import Callable
+from typing import Any, Literal
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, PyTree
+
+from .bundles import AbstractBundle, AlgebraPair, BundleElement
+from .coordinates import AbstractCoordinates
+
+RESULTS = diffrax.RESULTS
+VectorField = Callable[[Array, BundleElement, PyTree], AlgebraPair]
+"""`f(t, y, args) -> (ξ, η)`: the generator of y' = (ξ, η)·y (space form) or
+y' = y·(ξ, η) (body form)."""
+
+
+def tree_scale(alpha, tree):
+    """alpha·tree, leaf by leaf."""
+    return jax.tree.map(lambda x: alpha * x, tree)
+
+
+class AbstractMethod(eqx.Module):
+    """A one-step method on a bundle group, as the drivers use it.
+
+    A step is `step_with_guesses(vector_field, t, y, dt, args, carried)`:
+    `carried` is what the previous step handed on (`initial_guesses` before
+    the first), the implicit stages' starting guesses. Everything else is
+    built on it.
+    """
+
+    bundle: eqx.AbstractVar[AbstractBundle]
+    coordinates: eqx.AbstractVar[AbstractCoordinates]
+    form: eqx.AbstractVar[Literal["space", "body"]]
+
+    @property
+    @abc.abstractmethod
+    def order(self) -> int:
+        """The method's order (on problems where its assumptions hold; for a
+        composition, that its base is symmetric)."""
+
+    @abc.abstractmethod
+    def initial_guesses(self, vector_field: VectorField, t: Array, y: BundleElement, args: PyTree = None) -> Any:
+        """What `step_with_guesses` carries, before the first step from (t, y)."""
+
+    @abc.abstractmethod
+    def step_with_guesses(
+        self, vector_field: VectorField, t: Array, y: BundleElement, dt: Array, args: PyTree, carried: Any
+    ) -> tuple[BundleElement, AlgebraPair, RESULTS, Array, Any]:
+        """One step from (t, y) to t + dt. Returns (y_next, increment, result,
+        iterations, carried for the next step): `increment` is the U with
+        `apply_increment(U, y) = y_next`, `iterations` the implicit iterations
+        taken."""
+
+    @abc.abstractmethod
+    def start_field(self, carried: Any) -> AlgebraPair:
+        """The generator X(tₙ, yₙ) at the start of the step that returned
+        `carried` (it is part of what a step carries)."""
+
+    # --- shared by every method -----------------------------------------------------
+    def apply_increment(self, U: AlgebraPair, y: BundleElement) -> BundleElement:
+        """f(U)·y (space form) or y·f(U) (body form), f the coordinate map."""
+        return self.coordinates.apply(self.bundle, U, y, self.form)
+
+    def increment_between(self, y: BundleElement, y_next: BundleElement) -> AlgebraPair:
+        """The U near 0 with `apply_increment(U, y) = y_next`: f⁻¹(y_next·y⁻¹)
+        (space form) or f⁻¹(y⁻¹·y_next) (body form)."""
+        bundle = self.bundle
+        if self.form == "body":
+            relative = bundle.multiply(bundle.inverse(y), y_next)
+        else:
+            relative = bundle.multiply(y_next, bundle.inverse(y))
+        return self.coordinates.inverse_map(bundle, relative)
+
+    def slope(self, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
+        """U' for the generator X at the point reached by the increment U:
+        df⁻¹_U(X) (space form) or df⁻¹_{−U}(X) (body form), truncated as the
+        coordinates say for this method's order."""
+        if self.form == "body":
+            U = tree_scale(-1.0, U)
+        return self.coordinates.inverse_differential(self.bundle, U, X, self.order)
+
+    def generator(self, vector_field: VectorField, t, y: BundleElement, args) -> AlgebraPair:
+        """(ξ, η) = vector_field(t, y, args) in the state's dtype, whatever
+        precision the user's field returns."""
+        zeros = self.bundle.algebra_zeros(y)
+        return tuple(jnp.asarray(x, z.dtype) for x, z in zip(vector_field(t, y, args), zeros))
+
+    def check_vector_field(self, vector_field: VectorField, t, y: BundleElement, args) -> None:
+        """Trace-time check that `vector_field(t, y, args)` returns a pair
+        (ξ, η) of algebra arrays of the right shapes."""
+        out = jax.eval_shape(vector_field, t, y, args)
+        zeros = self.bundle.algebra_zeros(y)
+        if not (isinstance(out, (tuple, list)) and len(out) == 2):
+            raise ValueError(
+                f"the vector field must return a pair (ξ, η) of algebra elements, got {jax.tree.structure(out)}."
+            )
+        for name, got, want in zip(("ξ", "η"), out, zeros):
+            if not hasattr(got, "shape") or tuple(got.shape) != tuple(want.shape):
+                raise ValueError(
+                    f"the vector field returned {name} with shape {getattr(got, 'shape', type(got))}, "
+                    f"but the algebra of {type(self.bundle).__name__}({self.bundle.base.__name__}) at this state has shape {want.shape}."
+                )
+
+    def step(
+        self, vector_field: VectorField, t: Array, y: BundleElement, dt: Array, args: PyTree = None
+    ) -> tuple[BundleElement, RESULTS, Array]:
+        """One step from (t, y) to t + dt, the implicit stages started from the
+        field at y. Returns (y_next, result, iterations)."""
+        y_next, _, result, iterations = self.step_with_increment(vector_field, t, y, dt, args)
+        return y_next, result, iterations
+
+    def step_with_increment(
+        self, vector_field: VectorField, t: Array, y: BundleElement, dt: Array, args: PyTree = None
+    ) -> tuple[BundleElement, AlgebraPair, RESULTS, Array]:
+        """As `step`, also returning the increment U of the step
+        (y_next = `apply_increment(U, y)`)."""
+        carried = self.initial_guesses(vector_field, t, y, args)
+        y_next, increment, result, iterations, _ = self.step_with_guesses(vector_field, t, y, dt, args, carried)
+        return y_next, increment, result, iterations
