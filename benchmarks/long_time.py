@@ -4,8 +4,9 @@ One free rigid body (paper inertia and momentum). For each run: the largest
 relative error over t ∈ {0, 1, …, T} of the energy, of |Π| and of the
 spatial momentum QΠ (relative to |Π₀|), the largest ‖QᵀQ − I‖_F, and the
 wall time after compilation (median). PRKMK fixed-step methods (T*SO(3),
-body form, exp coordinates) run through `prkmk_jax.integrate` and are read at
-step points; PRKMK Lobatto with step doubling and the diffrax peers on the
+body form, exp coordinates; SE, SV, Lobatto IIIA–IIIB 4 and 6, and the
+compositions of SV of order 6 and 8) run through `prkmk_jax.integrate` and
+are read at step points; PRKMK Lobatto with step doubling and the diffrax peers on the
 embedding run through `diffeqsolve` with `SaveAt(ts=…)` (dense output).
 
 "At matched cost": for each PRKMK run, the smallest error any diffrax run
@@ -48,9 +49,7 @@ def drifts(q, pi, inertia=C.INERTIA):
     )
 
 
-def _prkmk_fixed(tableau, t_end):
-    method = pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), tableau, form="body")
-
+def _prkmk_fixed(method, t_end):
     def make(h):
         n, every = int(round(t_end / h)), int(round(1.0 / h))
 
@@ -86,6 +85,9 @@ def _runs(quick, t_end):
     fixed_h = [0.05] if quick else [0.1, 0.05, 0.02]
     rtols = [1e-6] if quick else [1e-4, 1e-6, 1e-8, 1e-10]
     runs = []
+    def body(tab):
+        return pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), tab, form="body")
+
     for name, tab in (
         ("SE", pk.symplectic_euler),
         ("SV", pk.stormer_verlet),
@@ -94,9 +96,20 @@ def _runs(quick, t_end):
         if quick and name != "SV":
             continue
         runs += [
-            (f"PRKMK {name} exp", "prkmk", "h", h, _prkmk_fixed(tab, t_end))
+            (f"PRKMK {name} exp", "prkmk", "h", h, _prkmk_fixed(body(tab), t_end))
             for h in fixed_h
         ]
+    # Order 6 and 8 (a step of h is 9 or 17 Störmer–Verlet steps for the
+    # compositions, so their steps are longer).
+    high_h = [0.25] if quick else [0.5, 0.2, 0.1]
+    for name, method in (
+        ("Lobatto6", body(pk.lobatto_iiia_iiib6)),
+        ("SV∘KahanLi6", pk.Composition(body(pk.stormer_verlet), pk.kahan_li_6)),
+        ("SV∘KahanLi8", pk.Composition(body(pk.stormer_verlet), pk.kahan_li_8)),
+    ):
+        if quick and name != "SV∘KahanLi6":
+            continue
+        runs += [(f"PRKMK {name} exp", "prkmk", "h", h, _prkmk_fixed(method, t_end)) for h in high_h]
     if not quick:
         solver = C.prkmk_solver(pk.lobatto_iiia_iiib4, adaptive=True)
         runs += [
