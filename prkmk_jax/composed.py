@@ -38,7 +38,26 @@ def _nonfinite(result, y):
     return RESULTS.where((result == RESULTS.successful) & ~finite, RESULTS.nonfinite, result)
 
 
-class Adjoint(AbstractMethod):
+class AbstractMadeOfSteps(AbstractMethod):
+    """A method built from the steps of `method`: on its bundle, in its
+    coordinates and form."""
+
+    method: eqx.AbstractVar[AbstractMethod]
+
+    @property
+    def bundle(self):
+        return self.method.bundle
+
+    @property
+    def coordinates(self):
+        return self.method.coordinates
+
+    @property
+    def form(self):
+        return self.method.form
+
+
+class Adjoint(AbstractMadeOfSteps):
     """The adjoint Φ*_h = (Φ_{−h})⁻¹ of a PRKMK method Φ.
 
     Φ*_h(yₙ) is the y with Φ_{−h}(y) = yₙ: the method's stages centred at
@@ -56,18 +75,6 @@ class Adjoint(AbstractMethod):
     def __check_init__(self):
         if not isinstance(self.method, PRKMK):
             raise TypeError(f"Adjoint takes a PRKMK method (its stages are re-centred), got {type(self.method).__name__}.")
-
-    @property
-    def bundle(self):
-        return self.method.bundle
-
-    @property
-    def coordinates(self):
-        return self.method.coordinates
-
-    @property
-    def form(self):
-        return self.method.form
 
     @property
     def order(self) -> int:
@@ -117,7 +124,7 @@ class Adjoint(AbstractMethod):
         return y_next, u_next, _nonfinite(result, y_next), iterations, (field_now, stages)
 
 
-class Symmetrized(AbstractMethod):
+class Symmetrized(AbstractMadeOfSteps):
     """Φ̂_h = Φ*_{h/2} ∘ Φ_{h/2}: half a step of a PRKMK method Φ, then half a
     step of its adjoint (`Adjoint`). Φ̂ is symmetric for any Φ, of order p
     (p even) or p + 1 (p odd: symplectic Euler gives order 2), and a
@@ -132,18 +139,6 @@ class Symmetrized(AbstractMethod):
     @property
     def adjoint(self) -> Adjoint:
         return Adjoint(self.method)
-
-    @property
-    def bundle(self):
-        return self.method.bundle
-
-    @property
-    def coordinates(self):
-        return self.method.coordinates
-
-    @property
-    def form(self):
-        return self.method.form
 
     @property
     def order(self) -> int:
@@ -169,7 +164,7 @@ class Symmetrized(AbstractMethod):
         return y_next, increment, _first_failure(result, result_second), n_first + n_second, (carried_first, carried_second)
 
 
-class Composition(AbstractMethod):
+class Composition(AbstractMadeOfSteps):
     """Ψ_h = Φ_{γ_m h} ∘ … ∘ Φ_{γ₁ h}: m steps of `method` with the step
     fractions of `coefficients` (e.g. `kahan_li_6`, `triple_jump(4)`).
 
@@ -195,18 +190,6 @@ class Composition(AbstractMethod):
                 f"{self.coefficients.name} raises a symmetric base of order {self.coefficients.base_order}, but the method "
                 f"has order {self.method.order}; use coefficients for that order (e.g. triple_jump({self.method.order}))."
             )
-
-    @property
-    def bundle(self):
-        return self.method.bundle
-
-    @property
-    def coordinates(self):
-        return self.method.coordinates
-
-    @property
-    def form(self):
-        return self.method.form
 
     @property
     def order(self) -> int:
