@@ -15,6 +15,7 @@ import argparse
 import os
 import platform
 import statistics
+import tempfile
 import time
 from pathlib import Path
 
@@ -320,9 +321,17 @@ def machine():
     )
 
 
+RESULTS = Path(__file__).resolve().parent / "results"
+"""Where full runs write by default (the committed results), whatever the
+working directory."""
+
+
 def cli(doc, argv, add_arguments=None):
     """The scripts' shared command line (--quick, --out): parses `argv`,
-    enables float64 and creates the output folder; returns (args, out)."""
+    enables float64 and creates the output folder; returns (args, out).
+    Without --out a full run writes to `benchmarks/results/` and a --quick
+    run to a fresh scratch folder, so a smoke test never overwrites the
+    committed results."""
     parser = argparse.ArgumentParser(
         description=doc, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -330,12 +339,20 @@ def cli(doc, argv, add_arguments=None):
         "--quick", action="store_true", help="tiny sizes, for a smoke test"
     )
     parser.add_argument(
-        "--out", default="benchmarks/results", help="folder for PNG/CSV/JSON"
+        "--out",
+        default=None,
+        help="folder for PNG/CSV/JSON (default: benchmarks/results, or a scratch folder with --quick)",
     )
     if add_arguments is not None:
         add_arguments(parser)
     args = parser.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
-    out = Path(args.out)
+    if args.out is not None:
+        out = Path(args.out)
+    elif args.quick:
+        out = Path(tempfile.mkdtemp(prefix="prkmk_benchmark_quick_"))
+    else:
+        out = RESULTS
     out.mkdir(parents=True, exist_ok=True)
+    print(f"writing to {out}")
     return args, out

@@ -103,6 +103,11 @@ class AbstractBundle(eqx.Module):
             fiber_shape = jnp.shape(y.fiber)
         if fiber_shape != zeros.shape:
             raise ValueError(f"fiber shape {fiber_shape} does not match the base algebra shape {zeros.shape}.")
+        fiber_dtype = jax.tree.leaves(y.fiber)[0].dtype if self.fiber_is_group else jnp.result_type(y.fiber)
+        if fiber_dtype != zeros.dtype:
+            raise TypeError(
+                f"the base is {zeros.dtype} but the fiber is {fiber_dtype}; give both the same dtype (the run's precision)."
+            )
         base = y.base.check()
         if self.fiber_is_group:
             fiber = y.fiber.check()
@@ -369,6 +374,8 @@ class Cotangent(AbstractSemidirect):
     trivialization: ClassVar[Literal["left"]] = "left"
 
     def __check_init__(self):
+        if not (isinstance(self.base, type) and issubclass(self.base, AbstractLieGroup)):
+            raise TypeError(f"Cotangent needs a base group class such as SO3, got {self.base!r}.")
         if not self.base.bi_invariant_pairing:
             raise TypeError(
                 f"Cotangent({self.base.__name__}) needs a base group whose algebra has a bi-invariant pairing "

@@ -14,6 +14,9 @@ from .bundles import AbstractBundle, AlgebraPair, BundleElement
 from .series import default_truncation, dexp_inv_series
 
 Truncation = int | None | Literal["auto"]
+MAX_SERIES_TRUNCATION = 30
+"""The largest truncation accepted: the series is unrolled at trace time, and
+beyond a few powers the exact form (`truncation=None`) is cheaper."""
 
 
 class AbstractCoordinates(eqx.Module):
@@ -51,6 +54,11 @@ def _check_truncation(truncation, allowed_max=None):
         return
     if isinstance(truncation, bool) or not isinstance(truncation, int) or truncation < 0:
         raise ValueError(f"truncation must be 'auto', None (exact) or an int ≥ 0, got {truncation!r}.")
+    if truncation > MAX_SERIES_TRUNCATION:
+        # The series is unrolled at trace time, one bracket per power.
+        raise ValueError(
+            f"truncation {truncation} is more than {MAX_SERIES_TRUNCATION} powers of ad; use truncation=None for the exact form."
+        )
     if allowed_max is not None and truncation > allowed_max:
         raise ValueError(f"truncation must be ≤ {allowed_max} here (that is already exact), got {truncation}.")
 

@@ -3,6 +3,7 @@
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, PyTree
 
 from .bundles import BundleElement
@@ -41,6 +42,19 @@ def _check_args(args):
     return jax.tree.map(check, args)
 
 
+def _static_count(name, value) -> int:
+    """A step count as a Python int (NumPy integers accepted): it sets the
+    scan's length, so it cannot be traced."""
+    if isinstance(value, jax.core.Tracer):
+        raise ValueError(
+            f"{name} must be a static Python int, got a traced value; under jax.jit pass it as a static "
+            f"argument (static_argnums / static_argnames, or eqx.filter_jit with a Python int)."
+        )
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"{name} must be an int ≥ 1, got {value!r}.")
+    return int(value)
+
+
 def integrate(
     solver: AbstractMethod,
     vector_field: VectorField,
@@ -71,9 +85,7 @@ def integrate(
     """
     if not isinstance(solver, AbstractMethod):
         raise TypeError(f"solver must be a PRKMK method (or a composition of them), got {type(solver).__name__}.")
-    for name, value, low in (("num_steps", num_steps, 1), ("save_every", save_every, 1)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < low:
-            raise ValueError(f"{name} must be an int ≥ {low}, got {value!r}.")
+    num_steps, save_every = _static_count("num_steps", num_steps), _static_count("save_every", save_every)
     if num_steps % save_every:
         raise ValueError(f"save_every={save_every} must divide num_steps={num_steps}.")
     if _is_concrete(dt):

@@ -112,12 +112,21 @@ class PRKMKSolver(diffrax.AbstractSolver):
 
     def init(self, terms, t0, t1, y0, args):
         method, field = self.method, _user_clock(terms)
-        method.bundle.check(y0)  # static type/shape errors
+        # Static type/shape errors now; the run-time checks of the data (a
+        # finite, orthogonal, det +1 base) act through the checked value, so
+        # the solver state is computed from it: an invalid y0 raises.
+        y0 = method.bundle.check(y0)
         method.check_vector_field(field, field.direction * t0, y0, args)
         # The solver state is what `PRKMK.step_with_guesses` carries: the
         # previous step's field at its start and its stage slopes, the implicit
         # stages' starting guesses (as in `integrate`).
-        return method.initial_guesses(field, field.direction * t0, y0, args)
+        carried = method.initial_guesses(field, field.direction * t0, y0, args)
+        # The field may not read every part of y0 (the free body ignores the
+        # attitude), and XLA would then drop those checks as dead code. A zero
+        # that depends on every checked entry keeps them alive (XLA does not fold
+        # 0·x for floats; x is finite once the checks have passed).
+        zero = sum(jnp.sum(leaf) for leaf in jax.tree.leaves(y0)) * 0
+        return jax.tree.map(lambda x: x + zero.astype(x.dtype), carried)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del made_jump  # the carried slopes are only a starting guess

@@ -94,6 +94,12 @@ class PRKMK(AbstractMethod):
             raise TypeError(f"tableau must be a PartitionedTableau, got {type(self.tableau).__name__}.")
         if self.form not in ("space", "body"):
             raise ValueError(f"form must be 'space' (y' = X·y) or 'body' (y' = y·X), got {self.form!r}.")
+        for name in ("rtol", "atol"):
+            value = getattr(self, name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0):
+                raise ValueError(f"{name} must be None (the default) or a number ≥ 0, got {value!r}.")
+        if self.rtol == 0 and self.atol == 0:
+            raise ValueError("rtol and atol cannot both be 0: the implicit stages could never stop.")
         if not isinstance(self.max_iterations, int) or self.max_iterations < 1:
             raise ValueError(f"max_iterations must be a positive int, got {self.max_iterations!r}.")
         if self.root_finder is not None and not isinstance(

@@ -81,6 +81,8 @@ class PartitionedTableau:
             value = np.asarray(getattr(self, field), dtype=np.float64)
             value.setflags(write=False)
             object.__setattr__(self, field, value)
+        if self.b_first.ndim != 1 or self.b_first.size == 0:
+            raise ValueError(f"{self.name}: b_first must be a non-empty vector of weights, got shape {self.b_first.shape}.")
         s = self.b_first.shape[0]
         shapes = {
             "a_first": (s, s), "a_second": (s, s), "b_first": (s,), "b_second": (s,), "c_first": (s,), "c_second": (s,)

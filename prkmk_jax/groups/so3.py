@@ -2,11 +2,12 @@
 
 from typing import ClassVar, Self
 
+import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .base import AbstractQuadraticGroup
-from ._util import checked_rotation, taylor_or_exact
+from ._util import as_array, check_floating, checked_rotation, taylor_or_exact
 
 # Below this θ² the Taylor branches are used; the exact forms that cancel
 # (θ − sin θ)/θ³ and the dexp⁻¹ coefficient lose ~eps/θ² relative accuracy.
@@ -92,13 +93,14 @@ def _poly(x, coefficients):
 class SO3(AbstractQuadraticGroup):
     """A rotation in SO(3)."""
 
-    matrix: Float[Array, "*batch 3 3"]
+    matrix: Float[Array, "*batch 3 3"] = eqx.field(converter=as_array)
     """Rotation matrix R with RᵀR = I, det R = 1."""
 
     algebra_ndim: ClassVar[int] = 1
     bi_invariant_pairing: ClassVar[bool] = True
 
     def __check_init__(self):
+        check_floating(self.matrix, "an SO3 matrix")
         if self.matrix.shape[-2:] != (3, 3):
             raise ValueError(f"SO3 needs a (..., 3, 3) matrix, got shape {self.matrix.shape}.")
 

@@ -2,6 +2,7 @@
 
 from typing import ClassVar, Self
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
@@ -9,7 +10,7 @@ from jaxtyping import Array, Float
 
 from .base import AbstractQuadraticGroup
 from ..series import dexp_inv_series
-from ._util import checked_rotation
+from ._util import as_array, check_floating, checked_rotation
 
 EXACT_SERIES_TERMS = 40
 """Terms of the Bernoulli series used as the 'exact' dexp⁻¹ on so(n).
@@ -34,13 +35,14 @@ def _eye_like(m):
 class SOn(AbstractQuadraticGroup):
     """A rotation in SO(n); n is read off the matrix shape."""
 
-    matrix: Float[Array, "*batch n n"]
+    matrix: Float[Array, "*batch n n"] = eqx.field(converter=as_array)
     """Orthogonal matrix with det = 1."""
 
     algebra_ndim: ClassVar[int] = 2
     bi_invariant_pairing: ClassVar[bool] = True
 
     def __check_init__(self):
+        check_floating(self.matrix, "an SOn matrix")
         if self.matrix.ndim < 2 or self.matrix.shape[-1] != self.matrix.shape[-2]:
             raise ValueError(f"SOn needs a (..., n, n) matrix, got shape {self.matrix.shape}.")
 

@@ -6,6 +6,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._util import as_array, check_floating
 from .base import AbstractQuadraticGroup
 
 
@@ -16,8 +17,11 @@ class VectorSpace(AbstractQuadraticGroup):
     PRKMK step there is exactly the classical partitioned RK step.
     """
 
-    value: Float[Array, "*batch n"]
+    value: Float[Array, "*batch n"] = eqx.field(converter=as_array)
     """The vector."""
+
+    def __check_init__(self):
+        check_floating(self.value, "a VectorSpace value")
 
     algebra_ndim: ClassVar[int] = 1
     bi_invariant_pairing: ClassVar[bool] = True

@@ -1,0 +1,144 @@
+"""Bad input through every entry point: each case raises an error whose
+message names the problem (static misuse at trace time, bad data at run
+time, under `jax.jit` too), and a few plausible inputs are accepted."""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import prkmk_jax as pk
+from helpers import INERTIA, PositiveReals, initial_state, rigid_body_field
+
+COTANGENT = pk.Cotangent(pk.SO3)
+FIELD = rigid_body_field(COTANGENT, "body")
+METHOD = pk.PRKMK(COTANGENT, pk.Exp(), pk.stormer_verlet, form="body")
+ARGS = jnp.asarray(INERTIA)
+GOOD = initial_state(COTANGENT)
+
+
+def _with_base(matrix):
+    return pk.BundleElement(pk.SO3(jnp.asarray(matrix)), GOOD.fiber)
+
+
+def _integrate(y0=GOOD, dt=0.1, num_steps=10, args=ARGS, field=FIELD, method=METHOD, **kw):
+    return pk.integrate(method, field, y0, 0.0, dt, num_steps, args, **kw).ys
+
+
+def _diffeqsolve(y0=GOOD, term=None, solver=None, args=ARGS):
+    return diffrax.diffeqsolve(term or pk.PRKMKTerm(FIELD), solver or pk.PRKMKSolver(METHOD), 0.0, 1.0, 0.1, y0, args).ys
+
+
+def _wrong_shape_field(t, y, args):
+    return jnp.zeros(4), jnp.zeros(3)
+
+
+STATIC = {
+    # groups
+    "SO3 of integers": (lambda: pk.SO3(jnp.eye(3, dtype=jnp.int32)), TypeError, "floating-point"),
+    "SO3 of a string": (lambda: pk.SO3("identity"), TypeError, "must be an array"),
+    "SO3 of a 2x2 matrix": (lambda: pk.SO3(jnp.eye(2)), ValueError, r"\(\.\.\., 3, 3\)"),
+    "SOn of integers": (lambda: pk.SOn(np.eye(4, dtype=int)), TypeError, "floating-point"),
+    "SOn not square": (lambda: pk.SOn(jnp.zeros((3, 4))), ValueError, r"\(\.\.\., n, n\)"),
+    "VectorSpace of integers": (lambda: pk.VectorSpace(jnp.arange(3)), TypeError, "floating-point"),
+    # bundles
+    "Cotangent of a string": (lambda: pk.Cotangent("SO3"), TypeError, "base group class"),
+    "Semidirect of a string": (lambda: pk.Semidirect("SO3"), TypeError, "base group class"),
+    "Semidirect trivialization": (lambda: pk.Semidirect(pk.SO3, "middle"), ValueError, "trivialization"),
+    "float32 base, float64 fiber": (
+        lambda: _integrate(pk.BundleElement(pk.SO3(jnp.eye(3, dtype=jnp.float32)), GOOD.fiber)), TypeError, "dtype"
+    ),
+    "fiber of the wrong shape": (lambda: _integrate(pk.BundleElement(GOOD.base, jnp.zeros(4))), ValueError, "fiber shape"),
+    "group fiber on T*G": (lambda: _integrate(pk.BundleElement(GOOD.base, GOOD.base)), TypeError, "algebra-array fiber"),
+    "y0 not a BundleElement": (lambda: _integrate((GOOD.base, GOOD.fiber)), TypeError, "BundleElement"),
+    # coordinates
+    "negative truncation": (lambda: pk.Exp(truncation=-1), ValueError, "int ≥ 0"),
+    "huge truncation": (lambda: pk.Exp(truncation=10**6), ValueError, "truncation=None"),
+    "Cayley truncation 1": (lambda: pk.Cayley(truncation=1), ValueError, "gains no order"),
+    "Cayley on a non-quadratic group": (lambda: pk.PRKMK(pk.DirectProduct(PositiveReals), pk.Cayley()), TypeError, "quadratic"),
+    # tableaus
+    "tableau of scalars": (lambda: pk.PartitionedTableau("x", 1.0, 1.0, 1.0, 0.0, 1.0, 0.0, 1), ValueError, "non-empty vector"),
+    "tableau row sums": (
+        lambda: pk.PartitionedTableau("x", [[0.5]], [1.0], [1.0], [[0.0]], [1.0], [0.0], 1), ValueError, "row sums"
+    ),
+    "tableau order too high": (
+        lambda: pk.PartitionedTableau("x", [[1.0]], [1.0], [1.0], [[0.0]], [1.0], [0.0], 2), ValueError, "order conditions"
+    ),
+    # the method
+    "negative rtol": (lambda: pk.PRKMK(COTANGENT, rtol=-1.0), ValueError, "rtol must be"),
+    "negative atol": (lambda: pk.PRKMK(COTANGENT, atol=-1e-3), ValueError, "atol must be"),
+    "rtol and atol zero": (lambda: pk.PRKMK(COTANGENT, rtol=0.0, atol=0.0), ValueError, "both be 0"),
+    "max_iterations 0": (lambda: pk.PRKMK(COTANGENT, max_iterations=0), ValueError, "max_iterations"),
+    "form sideways": (lambda: pk.PRKMK(COTANGENT, form="sideways"), ValueError, "form must be"),
+    "bundle not a bundle": (lambda: pk.PRKMK(pk.SO3), TypeError, "bundle must be"),
+    "composition of the wrong order": (
+        lambda: pk.Composition(pk.PRKMK(COTANGENT, tableau=pk.lobatto_iiia_iiib4), pk.kahan_li_6), ValueError, "order 2"
+    ),
+    "adjoint of a composition": (lambda: pk.Adjoint(pk.Composition(METHOD, pk.suzuki_5)), TypeError, "Adjoint takes a PRKMK"),
+    # integrate
+    "integrate with a solver that is not a method": (lambda: _integrate(method=diffrax.Tsit5()), TypeError, "PRKMK method"),
+    "num_steps 0": (lambda: _integrate(num_steps=0), ValueError, "num_steps must be an int"),
+    "num_steps traced": (
+        lambda: jax.jit(lambda n: _integrate(num_steps=n))(10), ValueError, "static Python int"
+    ),
+    "save_every not a divisor": (lambda: _integrate(num_steps=10, save_every=3), ValueError, "must divide"),
+    "dt negative": (lambda: _integrate(dt=-0.1), ValueError, "dt must be > 0"),
+    "vector field of the wrong shape": (lambda: _integrate(field=_wrong_shape_field), ValueError, "returned ξ with shape"),
+    # diffeqsolve
+    "ODETerm with PRKMKSolver": (lambda: _diffeqsolve(term=diffrax.ODETerm(FIELD)), Exception, "PRKMKTerm"),
+    "diffeqsolve y0 not a BundleElement": (lambda: _diffeqsolve(y0=(GOOD.base, GOOD.fiber)), TypeError, "BundleElement"),
+    "PRKMKSolver of Tsit5": (lambda: pk.PRKMKSolver(diffrax.Tsit5()), TypeError, "wraps a PRKMK"),
+}
+
+
+@pytest.mark.parametrize("case", STATIC, ids=list(STATIC))
+def test_static_misuse_is_refused_by_name(case):
+    fn, error, match = STATIC[case]
+    with pytest.raises(error, match=match):
+        jax.block_until_ready(fn())
+
+
+NOT_ORTHOGONAL = 2 * np.eye(3)
+REFLECTION = np.diag([1.0, 1.0, -1.0])
+RUNTIME = {
+    "integrate, y0 not orthogonal": (lambda y: _integrate(y), _with_base(NOT_ORTHOGONAL), "not orthogonal"),
+    "integrate, y0 a reflection": (lambda y: _integrate(y), _with_base(REFLECTION), "det = −1"),
+    "integrate, y0 not finite": (lambda y: _integrate(y), pk.BundleElement(GOOD.base, jnp.array([1.0, jnp.nan, 0.0])), "not finite"),
+    "integrate, dt ≤ 0 as data": (lambda dt: _integrate(dt=dt), jnp.asarray(-0.1), "dt must be > 0"),
+    "integrate, args not finite": (lambda a: _integrate(args=a), jnp.array([1.0, jnp.inf, 1.0]), "non-finite"),
+    "diffeqsolve, y0 not orthogonal": (lambda y: _diffeqsolve(y), _with_base(NOT_ORTHOGONAL), "not orthogonal"),
+    "diffeqsolve, y0 a reflection": (lambda y: _diffeqsolve(y), _with_base(REFLECTION), "det = −1"),
+}
+
+
+@pytest.mark.parametrize("jit", [False, True], ids=["eager", "jit"])
+@pytest.mark.parametrize("case", RUNTIME, ids=list(RUNTIME))
+def test_bad_data_raises_at_run_time_with_its_message(case, jit):
+    """Under `jax.jit` the error is a JaxRuntimeError whose text carries the
+    library's message (eqx.filter_jit shows it alone)."""
+    fn, data, match = RUNTIME[case]
+    run = jax.jit(fn) if jit else fn
+    with pytest.raises(Exception, match=match):
+        jax.block_until_ready(run(data))
+
+
+def test_plausible_inputs_are_accepted():
+    """A rotation as nested lists or a NumPy array, NumPy integer step counts."""
+    from_lists = pk.SO3([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    assert isinstance(from_lists.matrix, jax.Array) and from_lists.matrix.dtype == jnp.float64
+    assert pk.SO3(np.eye(3)).matrix.shape == (3, 3)
+    ys = _integrate(num_steps=np.int64(10), save_every=np.int32(5))
+    assert ys.fiber.shape == (3, 3)
+
+
+def test_rounding_drift_is_accepted_and_a_scaled_matrix_is_not():
+    """The orthogonality policy: drift of 5e-4 (a float32 run of 10⁵ steps
+    ends near 5.9e-4) restarts, in float32 and float64; 2e-3 is refused."""
+    rotation = np.asarray(GOOD.base.matrix)
+    for dtype in (jnp.float32, jnp.float64):
+        drifted = pk.BundleElement(pk.SO3(jnp.asarray(rotation * (1 + 2.5e-4), dtype)), GOOD.fiber.astype(dtype))
+        ys = _integrate(drifted, args=ARGS.astype(dtype))
+        assert ys.fiber.dtype == dtype and np.all(np.isfinite(ys.fiber))
+    with pytest.raises(Exception, match="not orthogonal"):
+        _integrate(_with_base(rotation * (1 + 1e-3)))
