@@ -34,11 +34,12 @@ class PRKMKTerm(diffrax.AbstractTerm):
         return t1 - t0
 
     def prod(self, vf, control):
-        return jax.tree.map(lambda v: control * v, vf)
+        # Only a Euclidean solver (Tsit5, …, or BacksolveAdjoint's adjoint term)
+        # forms f·dt, reading it as an increment of y; for a generator that is
+        # meaningless, and PRKMKSolver never calls it.
+        raise NotImplementedError(_EUCLIDEAN_USE)
 
     def vf_prod(self, t, y, args, control):
-        # A Euclidean solver (or BacksolveAdjoint's adjoint term) would read
-        # f·dt as an increment of y; for a generator that is meaningless.
         raise NotImplementedError(_EUCLIDEAN_USE)
 
 

@@ -89,6 +89,7 @@ STATIC = {
     "ODETerm with PRKMKSolver": (lambda: _diffeqsolve(term=diffrax.ODETerm(FIELD)), Exception, "PRKMKTerm"),
     "diffeqsolve y0 not a BundleElement": (lambda: _diffeqsolve(y0=(GOOD.base, GOOD.fiber)), TypeError, "BundleElement"),
     "PRKMKSolver of Tsit5": (lambda: pk.PRKMKSolver(diffrax.Tsit5()), TypeError, "wraps a PRKMK"),
+    "PRKMKTerm with Tsit5": (lambda: _diffeqsolve(solver=diffrax.Tsit5()), NotImplementedError, "Lie-algebra generator"),
 }
 
 
