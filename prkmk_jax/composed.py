@@ -25,17 +25,8 @@ from jaxtyping import Array, PyTree
 
 from .bundles import BundleElement
 from .compositions import CompositionCoefficients
-from .method import RESULTS, AbstractMethod, VectorField
+from .method import RESULTS, AbstractMethod, VectorField, first_failure, flag_nonfinite
 from .step import PRKMK, static_combination
-
-
-def _first_failure(result, new):
-    return RESULTS.where(result == RESULTS.successful, new, result)
-
-
-def _nonfinite(result, y):
-    finite = jnp.all(jnp.array([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(y)]))
-    return RESULTS.where((result == RESULTS.successful) & ~finite, RESULTS.nonfinite, result)
 
 
 class AbstractMadeOfSteps(AbstractMethod):
@@ -92,10 +83,7 @@ class Adjoint(AbstractMadeOfSteps):
         dt = jnp.asarray(dt, dtype)
         t = jnp.asarray(t, dtype)
         zeros = self.bundle.algebra_zeros(y)
-        previous_field, previous_stages = carried
-        field_now = method.generator(vector_field, t, y, args)
-        change = jax.tree.map(jnp.subtract, field_now, previous_field)
-        guesses = tuple(jax.tree.map(jnp.add, stage, change) for stage in previous_stages)
+        field_now, guesses = method.extrapolated_guesses(vector_field, t, y, args, carried)
 
         def combination(scale, coefficients, slopes, zero):
             out = static_combination(scale, coefficients, slopes, zero)
@@ -121,7 +109,7 @@ class Adjoint(AbstractMadeOfSteps):
         stages, result, iterations = method.solve_implicit(all_slopes, guesses, dtype)
         u_next = increment(stages)
         y_next = method.apply_increment(u_next, y)
-        return y_next, u_next, _nonfinite(result, y_next), iterations, (field_now, stages)
+        return y_next, u_next, flag_nonfinite(result, y_next), iterations, (field_now, stages)
 
 
 class Symmetrized(AbstractMadeOfSteps):
@@ -161,7 +149,7 @@ class Symmetrized(AbstractMadeOfSteps):
             vector_field, t + half, y_half, half, args, carried[1]
         )
         increment = self.increment_between(y, y_next)
-        return y_next, increment, _first_failure(result, result_second), n_first + n_second, (carried_first, carried_second)
+        return y_next, increment, first_failure(result, result_second), n_first + n_second, (carried_first, carried_second)
 
 
 class Composition(AbstractMadeOfSteps):
@@ -216,7 +204,7 @@ class Composition(AbstractMadeOfSteps):
             y_next, _, result_k, n, carried_k = self.method.step_with_guesses(
                 vector_field, t + start * dt, y_k, fraction * dt, args, carried_k
             )
-            return (y_next, _first_failure(result, result_k), iterations + n), carried_k
+            return (y_next, first_failure(result, result_k), iterations + n), carried_k
 
         init = (y, RESULTS.successful, jnp.array(0, jnp.int32))
         (y_next, result, iterations), carried = jax.lax.scan(substep, init, (fractions, starts, carried))

@@ -7,7 +7,7 @@ import numpy as np
 from jaxtyping import Array, PyTree
 
 from .bundles import BundleElement
-from .method import RESULTS, AbstractMethod, VectorField
+from .method import RESULTS, AbstractMethod, VectorField, first_failure
 from .step import STAGE_SLOPES_NAME
 
 
@@ -102,7 +102,7 @@ def integrate(
     def one_step(carry, n):
         y, result, total, worst, guesses = carry
         y_next, _, step_result, iters, guesses = solver.step_with_guesses(vector_field, t0 + n * dt, y, dt, args, guesses)
-        result = RESULTS.where(result == RESULTS.successful, step_result, result)
+        result = first_failure(result, step_result)
         return (y_next, result, total + iters, jnp.maximum(worst, iters), guesses), None
 
     # Under reverse mode a scanned step would store every intermediate of

@@ -33,6 +33,17 @@ def tree_scale(alpha, tree):
     return jax.tree.map(lambda x: alpha * x, tree)
 
 
+def first_failure(result: RESULTS, new: RESULTS) -> RESULTS:
+    """`result` if it already records a failure, else `new`."""
+    return RESULTS.where(result == RESULTS.successful, new, result)
+
+
+def flag_nonfinite(result: RESULTS, y) -> RESULTS:
+    """`result`, or `RESULTS.nonfinite` if it was a success and `y` holds a NaN or inf."""
+    finite = jnp.all(jnp.array([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(y)]))
+    return first_failure(result, RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite))
+
+
 class AbstractMethod(eqx.Module):
     """A one-step method on a bundle group, as the drivers use it.
 

@@ -16,7 +16,7 @@ from jaxtyping import Array
 
 from .bundles import AlgebraPair, BundleElement
 from .interpolation import OnGroupInterpolation
-from .method import RESULTS, AbstractMethod
+from .method import AbstractMethod, first_failure, tree_scale
 
 
 class PRKMKTerm(diffrax.AbstractTerm):
@@ -145,12 +145,12 @@ class PRKMKSolver(diffrax.AbstractSolver):
             y_next, _, result_b, _ = method.step_with_increment(field, s0 + h / 2, y_half, h / 2, args)
             y_error = jax.tree.map(jnp.subtract, y_next, y1)
             for r in (result_a, result_b):
-                result = RESULTS.where(result == RESULTS.successful, r, result)
+                result = first_failure(result, r)
         # Dense output interpolates the full step y0 → y1; slopes are per unit
         # of diffrax's clock, in which the interpolation runs.
         x1 = method.generator(field, s1, y1, args)
-        slope0 = jax.tree.map(lambda x: direction * x, x0)  # df⁻¹_0 = I
-        slope1 = jax.tree.map(lambda x: direction * x, method.slope(increment, x1))
+        slope0 = tree_scale(direction, x0)  # df⁻¹_0 = I
+        slope1 = tree_scale(direction, method.slope(increment, x1))
         dense_info = dict(y0=y0, increment=increment, slope0=slope0, slope1=slope1, method=method)
         return y_next, y_error, dense_info, carried, result
 

@@ -32,7 +32,7 @@ from jaxtyping import Array, PyTree
 
 from .bundles import AbstractBundle, AlgebraPair, BundleElement
 from .coordinates import AbstractCoordinates, Exp
-from .method import RESULTS, AbstractMethod, VectorField
+from .method import RESULTS, AbstractMethod, VectorField, first_failure, flag_nonfinite
 from .tableaus import PartitionedTableau, stormer_verlet
 
 STAGE_SLOPES_NAME = "prkmk_stage_slopes"
@@ -133,12 +133,17 @@ class PRKMK(AbstractMethod):
         returned last (or `initial_guesses`); returns (y_next, increment,
         result, iterations, carried for the next step), whose first entry
         is the field at (t, y)."""
+        field_now, guesses = self.extrapolated_guesses(vector_field, t, y, args, carried)
+        y_next, u_next, result, iterations, stages = self.step_with_stages(vector_field, t, y, dt, args, field_now, guesses)
+        return y_next, u_next, result, iterations, (field_now, stages)
+
+    def extrapolated_guesses(self, vector_field: VectorField, t: Array, y: BundleElement, args: PyTree, carried):
+        """(X(tₙ, yₙ), the stage guesses Kᵢ_prev + X(tₙ, yₙ) − X(tₙ₋₁, yₙ₋₁))
+        from what the previous step carried (see `step_with_guesses`)."""
         previous_field, previous_stages = carried
         field_now = self.generator(vector_field, t, y, args)
         change = jax.tree.map(jnp.subtract, field_now, previous_field)
-        guesses = tuple(jax.tree.map(jnp.add, stage, change) for stage in previous_stages)
-        y_next, u_next, result, iterations, stages = self.step_with_stages(vector_field, t, y, dt, args, field_now, guesses)
-        return y_next, u_next, result, iterations, (field_now, stages)
+        return field_now, tuple(jax.tree.map(jnp.add, stage, change) for stage in previous_stages)
 
     def step_with_stages(
         self,
@@ -211,7 +216,7 @@ class PRKMK(AbstractMethod):
             else:
                 guess = tuple(tuple(jnp.asarray(x, dtype) for x in stage_guesses[i]) for i in idx)
             block, block_result, n = self.solve_implicit(block_slopes, guess, dtype)
-            result = RESULTS.where(result == RESULTS.successful, block_result, result)
+            result = first_failure(result, block_result)
             iterations = iterations + n
             for i, (k, l) in zip(idx, block):
                 first[i], second[i] = k, l
@@ -220,9 +225,7 @@ class PRKMK(AbstractMethod):
         v_next = static_combination(dt, tab.b_second, second, zeros[1])
         u_next = (zeros[0] if u_next is None else u_next, zeros[1] if v_next is None else v_next)
         y_next = self.apply_increment(u_next, y)
-        finite = jnp.all(jnp.array([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(y_next)]))
-        result = RESULTS.where((result == RESULTS.successful) & ~finite, RESULTS.nonfinite, result)
-        return y_next, u_next, result, iterations, tuple(zip(first, second))
+        return y_next, u_next, flag_nonfinite(result, y_next), iterations, tuple(zip(first, second))
 
     def solve_implicit(self, block_slopes, guess, dtype):
         """Solve block_slopes(K) = K for the slopes K of an implicit block

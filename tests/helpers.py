@@ -117,6 +117,11 @@ def empirical_order(solver: pk.PRKMK, t_end=2.0, steps=(10, 20, 40, 80), seed=0,
     return slope, np.asarray(errs)
 
 
+def max_leaf_difference(a, b) -> float:
+    """max |a − b| over the entries of two pytrees of the same structure."""
+    return max(float(jnp.max(jnp.abs(x - y))) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+
+
 # --- hypothesis strategies -----------------------------------------------------------
 from hypothesis import strategies as st  # noqa: E402
 

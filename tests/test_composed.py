@@ -10,7 +10,7 @@ import pytest
 import scipy.linalg
 
 import prkmk_jax as pk
-from helpers import INERTIA, empirical_order, initial_state, reference, rigid_body_field, state_vector
+from helpers import INERTIA, empirical_order, initial_state, max_leaf_difference, reference, rigid_body_field, state_vector
 
 COTANGENT = pk.Cotangent(pk.SO3)
 CARTESIAN = pk.Cartesian(pk.SO3)
@@ -19,10 +19,6 @@ ARGS = jnp.asarray(INERTIA)
 
 def _prkmk(bundle, tab=pk.stormer_verlet, coordinates=None, form="body"):
     return pk.PRKMK(bundle, coordinates or pk.Exp(), tab, form=form)
-
-
-def _max_difference(a, b):
-    return max(float(jnp.max(jnp.abs(x - y))) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
 
 
 # --- coefficient sets ---------------------------------------------------------------
@@ -112,11 +108,11 @@ def test_adjoint_undoes_the_reversed_step(bundle, tab, coordinates, form):
     y1, result, _ = adjoint.step(field, 0.0, y0, h, ARGS)
     back, _, _ = method.step(field, h, y1, -h, ARGS)
     assert result == pk.RESULTS.successful
-    assert _max_difference(back, y0) <= 1e-12
+    assert max_leaf_difference(back, y0) <= 1e-12
     y1, _, _ = method.step(field, 0.0, y0, -h, ARGS)
     back, _, _ = adjoint.step(field, -h, y1, h, ARGS)
-    assert _max_difference(back, y0) <= 1e-12
-    assert _max_difference(adjoint.step(field, 0.0, y0, h, ARGS)[0], method.step(field, 0.0, y0, h, ARGS)[0]) > 1e-8
+    assert max_leaf_difference(back, y0) <= 1e-12
+    assert max_leaf_difference(adjoint.step(field, 0.0, y0, h, ARGS)[0], method.step(field, 0.0, y0, h, ARGS)[0]) > 1e-8
 
 
 def _adjoint_tableau(tab):
@@ -140,7 +136,7 @@ def test_adjoint_in_a_vector_space_is_the_adjoint_tableau(tab):
     y0 = pk.BundleElement(pk.VectorSpace(jnp.array([0.9, -0.3])), pk.VectorSpace(jnp.array([0.2, 0.5])))
     ours = pk.Adjoint(_prkmk(bundle, tab, form="space")).step(pendulum, 0.0, y0, 0.2, 1.3)[0]
     classical = _prkmk(bundle, _adjoint_tableau(tab), form="space").step(pendulum, 0.0, y0, 0.2, 1.3)[0]
-    assert _max_difference(ours, classical) <= 1e-13
+    assert max_leaf_difference(ours, classical) <= 1e-13
     if tab is pk.symplectic_euler:
         assert np.array_equal(_adjoint_tableau(tab).a_first, pk.symplectic_euler_adjoint.a_first)
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import PositiveReals
+from helpers import PositiveReals, max_leaf_difference
 from test_groups import BUNDLES, bundle_algebra, tangent_to_algebra
 
 COORDINATES = {"exp": pk.Exp(truncation=None), "cayley": pk.Cayley(truncation=None)}
@@ -20,10 +20,6 @@ def _differential(bundle, coords, U, V):
     return tangent_to_algebra(bundle, jax.jvp(moved, (U,), (V,))[1])
 
 
-def _max_diff(a, b):
-    return max(float(jnp.max(jnp.abs(x - y))) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
-
-
 @pytest.mark.parametrize("coords_name", COORDINATES)
 @pytest.mark.parametrize("name", BUNDLES)
 @pytest.mark.parametrize("scale", [1e-7, 0.3, 1.0])
@@ -34,7 +30,7 @@ def test_exact_inverse_differential_matches_autodiff(name, coords_name, scale):
     V = bundle_algebra(bundle, rng.normal(size=6), rng.normal(size=6))
     X = _differential(bundle, coords, U, V)
     back = coords.inverse_differential(bundle, U, X, method_order=4)
-    assert _max_diff(back, V) < 1e-12
+    assert max_leaf_difference(back, V) < 1e-12
 
 
 def _next_nonzero_bernoulli(q):
@@ -57,7 +53,7 @@ def test_truncated_series_error_rate(name, q):
     errs = []
     for s in scales:
         U = jax.tree.map(lambda u: s * u, U1)
-        errs.append(_max_diff(pk.Exp(truncation=q).inverse_differential(bundle, U, X, 4), bundle.dexp_inv(U, X)))
+        errs.append(max_leaf_difference(pk.Exp(truncation=q).inverse_differential(bundle, U, X, 4), bundle.dexp_inv(U, X)))
     errs = np.asarray(errs)
     if np.all(errs < 1e-14):  # abelian directions: the series is exact (e.g. over ℝ³)
         assert bundle.base is pk.VectorSpace
@@ -139,8 +135,8 @@ def test_paper_printed_semidirect_dcayley_inv_holds_on_so3_only(trivialization):
         U = bundle_algebra(bundle, 0.6 * rng.normal(size=6), 0.6 * rng.normal(size=6))
         V = bundle_algebra(bundle, rng.normal(size=6), rng.normal(size=6))
         X = _differential(bundle, coords, U, V)
-        residuals[base] = _max_diff(paper_semidirect_dcayley_inv(bundle, U, X), V)
-        assert _max_diff(bundle.dcayley_inv(U, X), V) < 1e-12
+        residuals[base] = max_leaf_difference(paper_semidirect_dcayley_inv(bundle, U, X), V)
+        assert max_leaf_difference(bundle.dcayley_inv(U, X), V) < 1e-12
     assert residuals[pk.SO3] < 1e-12
     assert residuals[pk.SOn] > 1e-4
 
@@ -154,12 +150,12 @@ def test_inverse_map_inverts_the_map(name, coords_name, scale):
     bundle, coords = BUNDLES[name], COORDINATES[coords_name]
     rng = np.random.default_rng(11)
     U = bundle_algebra(bundle, scale * rng.normal(size=6), scale * rng.normal(size=6))
-    assert _max_diff(coords.inverse_map(bundle, coords.map(bundle, U)), U) < 1e-12
+    assert max_leaf_difference(coords.inverse_map(bundle, coords.map(bundle, U)), U) < 1e-12
     y = coords.map(bundle, bundle_algebra(bundle, rng.normal(size=6), rng.normal(size=6)))
     for form in ("space", "body"):
         method = pk.PRKMK(bundle, coords, form=form)
         moved = method.apply_increment(U, y)
-        assert _max_diff(method.increment_between(y, moved), U) < 1e-11
+        assert max_leaf_difference(method.increment_between(y, moved), U) < 1e-11
 
 
 def test_so3_cayley_inverse_matches_the_matrix_formula():
