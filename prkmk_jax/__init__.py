@@ -28,7 +28,12 @@ from .compositions import (
 from .coordinates import AbstractCoordinates as AbstractCoordinates, Cayley as Cayley, Exp as Exp
 from .groups import SO3 as SO3, SOn as SOn, VectorSpace as VectorSpace, hat as hat, vee as vee
 from .method import AbstractMethod as AbstractMethod
-from .integrate import Trajectory as Trajectory, integrate as integrate
+from .integrate import (
+    Continuation as Continuation,
+    Trajectory as Trajectory,
+    integrate as integrate,
+    resume as resume,
+)
 from .series import dexp_inv_series as dexp_inv_series, dexp_series as dexp_series
 from .step import PRKMK as PRKMK, RESULTS as RESULTS
 from .tableaus import (

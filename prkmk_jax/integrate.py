@@ -11,6 +11,23 @@ from .method import RESULTS, AbstractMethod, VectorField, first_failure
 from .step import STAGE_SLOPES_NAME
 
 
+class Continuation(eqx.Module):
+    """Where a fixed-step run stopped: all that `resume` needs to continue it
+    exactly as the uninterrupted run would have gone on."""
+
+    y: BundleElement
+    """The last state."""
+    t0: Array
+    """The start time of the first run; step n runs from t0 + n·dt."""
+    dt: Array
+    """The step size."""
+    steps_done: Array
+    """Steps taken since `t0` (int32 scalar)."""
+    guesses: PyTree
+    """The implicit stages' starting guesses for the next step (the carried
+    stage slopes of `AbstractMethod.step_with_guesses`)."""
+
+
 class Trajectory(eqx.Module):
     """Saved states of a fixed-step run."""
 
@@ -23,6 +40,9 @@ class Trajectory(eqx.Module):
     not converge, a non-finite state)."""
     stats: dict
     """`num_iterations`: total implicit iterations; `max_iterations_per_step`."""
+    continuation: Continuation
+    """Hand it to `resume` to continue the run: the continued run equals the
+    uninterrupted one bit for bit."""
 
 
 def _is_concrete(x) -> bool:
@@ -81,23 +101,84 @@ def integrate(
     from the previous step's stage slopes, moved by the change of the field
     at the step's start (an O(h²) guess; the field at yₙ alone is O(h);
     `PRKMK.step_with_guesses`); they converge to the same tolerance either
-    way.
+    way. To continue the run later, pass `Trajectory.continuation` to
+    `resume`.
     """
+    _check_solver(solver)
+    y0 = solver.bundle.check(y0)
+    dtype = jnp.result_type(*jax.tree.leaves(y0))
+    t0 = jnp.asarray(t0, dtype)
+    dt = _checked_dt(dt, dtype)
+    args = _check_args(args)
+    solver.check_vector_field(vector_field, t0, y0, args)
+    guesses = solver.initial_guesses(vector_field, t0, y0, args)
+    start = Continuation(y0, t0, dt, jnp.array(0, jnp.int32), guesses)
+    return _run(solver, vector_field, start, num_steps, args, save_every, throw)
+
+
+def resume(
+    solver: AbstractMethod,
+    vector_field: VectorField,
+    continuation: Continuation,
+    num_steps: int,
+    args: PyTree = None,
+    *,
+    save_every: int = 1,
+    throw: bool = True,
+) -> Trajectory:
+    """Continue a run of `integrate` (or of `resume`) for `num_steps` more
+    steps from its `Trajectory.continuation`.
+
+    The continued run takes the same steps, at the same times
+    t0 + n·dt, from the same starting guesses, as the uninterrupted run, so
+    its states equal that run's bit for bit. Its `ts` and `ys` start with the
+    continuation's time and state. The continuation is a pytree of arrays:
+    keep it in memory, or save it with `eqx.tree_serialise_leaves` and load it
+    with `eqx.tree_deserialise_leaves` (the template: `jax.eval_shape` of the
+    run that produced it).
+
+    Under `jax.jit`, give the first run its `t0` and `dt` as arguments rather
+    than constants that the compiled function closes over: XLA may fold
+    constants with another rounding (and fuse a multiply-add), and the two
+    runs then differ in the last bit.
+    """
+    _check_solver(solver)
+    if not isinstance(continuation, Continuation):
+        raise TypeError(
+            f"continuation must be a Trajectory's `continuation`, got {type(continuation).__name__}; "
+            "to start from a state, use integrate."
+        )
+    y = solver.bundle.check(continuation.y)
+    dtype = jnp.result_type(*jax.tree.leaves(y))
+    dt = _checked_dt(continuation.dt, dtype)
+    args = _check_args(args)
+    t = continuation.t0 + continuation.steps_done * dt
+    solver.check_vector_field(vector_field, t, y, args)
+    expected = jax.tree.structure(eqx.filter_eval_shape(solver.initial_guesses, vector_field, t, y, args))
+    if jax.tree.structure(continuation.guesses) != expected:
+        raise TypeError("the continuation comes from another method (its carried guesses have another structure).")
+    start = eqx.tree_at(lambda c: (c.y, c.dt), continuation, (y, dt))
+    return _run(solver, vector_field, start, num_steps, args, save_every, throw)
+
+
+def _check_solver(solver) -> None:
     if not isinstance(solver, AbstractMethod):
         raise TypeError(f"solver must be a PRKMK method (or a composition of them), got {type(solver).__name__}.")
-    num_steps, save_every = _static_count("num_steps", num_steps), _static_count("save_every", save_every)
-    if num_steps % save_every:
-        raise ValueError(f"save_every={save_every} must divide num_steps={num_steps}.")
+
+
+def _checked_dt(dt, dtype) -> Array:
     if _is_concrete(dt):
         if not float(dt) > 0:
             raise ValueError(f"dt must be > 0 and finite, got {dt}.")
-    y0 = solver.bundle.check(y0)
-    dtype = jnp.result_type(*jax.tree.leaves(y0))
     dt = jnp.asarray(dt, dtype)
-    dt = eqx.error_if(dt, ~(dt > 0), "dt must be > 0 and finite.")
-    t0 = jnp.asarray(t0, dtype)
-    args = _check_args(args)
-    solver.check_vector_field(vector_field, t0, y0, args)
+    return eqx.error_if(dt, ~(dt > 0), "dt must be > 0 and finite.")
+
+
+def _run(solver, vector_field, start: Continuation, num_steps, args, save_every, throw) -> Trajectory:
+    num_steps, save_every = _static_count("num_steps", num_steps), _static_count("save_every", save_every)
+    if num_steps % save_every:
+        raise ValueError(f"save_every={save_every} must divide num_steps={num_steps}.")
+    t0, dt = start.t0, start.dt
 
     def one_step(carry, n):
         y, result, total, worst, guesses = carry
@@ -114,15 +195,17 @@ def integrate(
     step_fn = jax.checkpoint(one_step, prevent_cse=False, policy=saved)
 
     def one_save(carry, first):
-        carry, _ = jax.lax.scan(step_fn, carry, first + jnp.arange(save_every))
+        carry, _ = jax.lax.scan(step_fn, carry, first + jnp.arange(save_every, dtype=jnp.int32))
         return carry, carry[0]
 
     zero = jnp.array(0, jnp.int32)
-    init = (y0, RESULTS.successful, zero, zero, solver.initial_guesses(vector_field, t0, y0, args))
+    init = (start.y, RESULTS.successful, zero, zero, start.guesses)
     num_saves = num_steps // save_every
-    (_, result, total, worst, _), saved = jax.lax.scan(one_save, init, save_every * jnp.arange(num_saves))
-    ys = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), y0, saved)
-    ts = t0 + dt * save_every * jnp.arange(num_saves + 1, dtype=dtype)
+    save_steps = start.steps_done + save_every * jnp.arange(num_saves + 1, dtype=jnp.int32)
+    (y_last, result, total, worst, guesses), saved = jax.lax.scan(one_save, init, save_steps[:-1])
+    ys = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), start.y, saved)
+    ts = t0 + save_steps * dt
     if throw:
         ys = result.error_if(ys, result != RESULTS.successful)
-    return Trajectory(ts, ys, result, {"num_iterations": total, "max_iterations_per_step": worst})
+    continuation = Continuation(y_last, t0, dt, save_steps[-1], guesses)
+    return Trajectory(ts, ys, result, {"num_iterations": total, "max_iterations_per_step": worst}, continuation)

@@ -71,6 +71,21 @@ def _user_clock(terms) -> _UserClock:
     return _UserClock(terms, jnp.asarray(terms.contr(0, 1)))
 
 
+def _check_terms(terms, y0) -> None:
+    """Refuse, by name, terms and states that only a Euclidean solve produces."""
+    if isinstance(y0, tuple) and len(y0) == 4 and isinstance(y0[0], BundleElement):
+        # BacksolveAdjoint's backward solve: state (y, a_y, a_args, a_terms).
+        raise NotImplementedError(_EUCLIDEAN_USE)
+    # diffeqsolve may wrap the user's term (a backward-in-time solve), so look
+    # for a PRKMKTerm anywhere in the terms' tree.
+    found = jax.tree.leaves(terms, is_leaf=lambda node: isinstance(node, PRKMKTerm))
+    if not any(isinstance(node, PRKMKTerm) for node in found):
+        raise TypeError(
+            f"PRKMKSolver needs its vector field as a PRKMKTerm(f) with f(t, y, args) -> (ξ, η), "
+            f"got {type(terms).__name__}; an ODETerm's dy/dt has no meaning on the group."
+        )
+
+
 class PRKMKSolver(diffrax.AbstractSolver):
     """Runs a `PRKMK` method inside `diffrax.diffeqsolve`.
 
@@ -78,9 +93,10 @@ class PRKMKSolver(diffrax.AbstractSolver):
     `integrate`; dense output (`SaveAt(ts=...)`, `SaveAt(dense=True)`,
     `Solution.evaluate`) is `OnGroupInterpolation`, of order min(p, 3).
     Gradients: `RecursiveCheckpointAdjoint` (default), `DirectAdjoint`,
-    `ForwardMode`. `BacksolveAdjoint` is refused — its backward solve hands
-    the solver diffrax's `AdjointTerm`, which diffrax rejects as not a
-    `PRKMKTerm` (its continuous adjoint treats the state as Euclidean).
+    `ForwardMode`. `BacksolveAdjoint` is refused, with this library's message,
+    when its backward solve starts: that solve hands the solver diffrax's
+    adjoint term and an augmented Euclidean state (its continuous adjoint
+    treats the state as Euclidean). Its forward solve is the plain solve.
     For a known number of fixed steps, `RecursiveCheckpointAdjoint(
     checkpoints=num_steps)` recomputes each step once in the backward pass;
     diffrax's default keeps fewer checkpoints and recomputes more.
@@ -97,7 +113,10 @@ class PRKMKSolver(diffrax.AbstractSolver):
     still interpolates the full step, so between steps it may differ from the
     carried state by up to the local error estimate (it stays on the group).
     Adaptive steps forfeit the exact symplecticity of a fixed-step method."""
-    term_structure: ClassVar = PRKMKTerm
+    # Any term passes diffrax's own check, so that `init` can refuse what is
+    # not a PRKMKTerm (an ODETerm, BacksolveAdjoint's adjoint term) with this
+    # library's explanation rather than diffrax's generic mismatch.
+    term_structure: ClassVar = diffrax.AbstractTerm
     interpolation_cls: ClassVar = OnGroupInterpolation
 
     def __check_init__(self):
@@ -112,6 +131,7 @@ class PRKMKSolver(diffrax.AbstractSolver):
         return self.method.order + 1 if self.adaptive else None
 
     def init(self, terms, t0, t1, y0, args):
+        _check_terms(terms, y0)
         method, field = self.method, _user_clock(terms)
         # Static type/shape errors now; the run-time checks of the data (a
         # finite, orthogonal, det +1 base) act through the checked value, so

@@ -26,8 +26,8 @@ def _integrate(y0=GOOD, dt=0.1, num_steps=10, args=ARGS, field=FIELD, method=MET
     return pk.integrate(method, field, y0, 0.0, dt, num_steps, args, **kw).ys
 
 
-def _diffeqsolve(y0=GOOD, term=None, solver=None, args=ARGS):
-    return diffrax.diffeqsolve(term or pk.PRKMKTerm(FIELD), solver or pk.PRKMKSolver(METHOD), 0.0, 1.0, 0.1, y0, args).ys
+def _diffeqsolve(y0=GOOD, term=None, solver=None, args=ARGS, **kw):
+    return diffrax.diffeqsolve(term or pk.PRKMKTerm(FIELD), solver or pk.PRKMKSolver(METHOD), 0.0, 1.0, 0.1, y0, args, **kw).ys
 
 
 def _wrong_shape_field(t, y, args):
@@ -86,7 +86,15 @@ STATIC = {
     "dt negative": (lambda: _integrate(dt=-0.1), ValueError, "dt must be > 0"),
     "vector field of the wrong shape": (lambda: _integrate(field=_wrong_shape_field), ValueError, "returned ξ with shape"),
     # diffeqsolve
-    "ODETerm with PRKMKSolver": (lambda: _diffeqsolve(term=diffrax.ODETerm(FIELD)), Exception, "PRKMKTerm"),
+    # diffrax checks an ODETerm's output against y0 first and names ODETerm;
+    # a field that does return a state is refused by PRKMKSolver.
+    "ODETerm with PRKMKSolver": (lambda: _diffeqsolve(term=diffrax.ODETerm(FIELD)), ValueError, "inside `ODETerm`"),
+    "ODETerm returning a state": (lambda: _diffeqsolve(term=diffrax.ODETerm(lambda t, y, a: y)), TypeError, r"PRKMKTerm\(f\)"),
+    "gradient through BacksolveAdjoint": (
+        lambda: jax.grad(lambda a: jnp.sum(_diffeqsolve(args=a, adjoint=diffrax.BacksolveAdjoint()).fiber))(ARGS),
+        NotImplementedError,
+        "BacksolveAdjoint",
+    ),
     "diffeqsolve y0 not a BundleElement": (lambda: _diffeqsolve(y0=(GOOD.base, GOOD.fiber)), TypeError, "BundleElement"),
     "PRKMKSolver of Tsit5": (lambda: pk.PRKMKSolver(diffrax.Tsit5()), TypeError, "wraps a PRKMK"),
     "PRKMKTerm with Tsit5": (lambda: _diffeqsolve(solver=diffrax.Tsit5()), NotImplementedError, "Lie-algebra generator"),
