@@ -85,6 +85,15 @@ def _rotation_matrix(w):
     return jnp.eye(3, dtype=w.dtype) + a * wh + b * (wh @ wh)
 
 
+def _next_attitude(q, u):
+    """Q·exp(û); in float32 followed by the Björck step Q + ½Q(I − QᵀQ), as
+    the library's step does in low precision (it keeps QᵀQ = I to rounding)."""
+    q = q @ _rotation_matrix(u)
+    if jnp.finfo(q.dtype).eps > 1e-10:
+        q = 1.5 * q - 0.5 * q @ (q.T @ q)
+    return q
+
+
 def _stage_tolerance(dtype):
     return max(1e-12, 50 * float(jnp.finfo(dtype).eps))
 
@@ -118,7 +127,7 @@ def fused_sv(q, pi, inertia, steps):
         # from the previous step's, moved as Ω moved: w1_prev + Ωₙ − Ωₙ₋₁.
         (w1,), n = _iterate(lambda z: (_rotate(-0.5 * H * (w0 + z[0]), pi) / inertia,), (w1_prev + w0 - w0_prev,), tol)
         u = 0.5 * H * (w0 + w1)
-        return (q @ _rotation_matrix(u), _rotate(-u, pi), total + n, w0, w1), None
+        return (_next_attitude(q, u), _rotate(-u, pi), total + n, w0, w1), None
 
     w = pi / inertia
     (q, pi, total, _, _), _ = jax.lax.scan(step, (q, pi, 0, w, w), None, length=steps)
@@ -164,7 +173,7 @@ def fused_lobatto(q, pi, inertia, steps):
         z, n = _iterate(lambda z: slopes(pi, z), guess, tol)
         u = _combine(_LOBATTO_B, z[:3])
         v = _combine(_LOBATTO_B, z[3:])
-        return (q @ _rotation_matrix(u), _rotate(-u, pi) + _dexp(-u, v), total + n, w0, z), None
+        return (_next_attitude(q, u), _rotate(-u, pi) + _dexp(-u, v), total + n, w0, z), None
 
     w, zero = pi / inertia, jnp.zeros_like(pi)
     (q, pi, total, _, _), _ = jax.lax.scan(step, (q, pi, 0, w, (w, w, w, zero, zero, zero)), None, length=steps)

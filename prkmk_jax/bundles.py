@@ -115,6 +115,18 @@ class AbstractBundle(eqx.Module):
             fiber = eqx.error_if(y.fiber, ~jnp.all(jnp.isfinite(y.fiber)), "bundle fiber is not finite (NaN or inf).")
         return BundleElement(base, fiber)
 
+    def project(self, y: BundleElement) -> BundleElement:
+        """`y` with its base (and a group fiber) moved to the nearest valid
+        element (`AbstractLieGroup.project`); an algebra fiber is unchanged."""
+        fiber = y.fiber.project() if self.fiber_is_group else y.fiber
+        return BundleElement(y.base.project(), fiber)
+
+    def renormalized(self, y: BundleElement) -> BundleElement:
+        """`y` with its base (and a group fiber) corrected for rounding drift
+        (`AbstractLieGroup.renormalized`); an algebra fiber is unchanged."""
+        fiber = y.fiber.renormalized() if self.fiber_is_group else y.fiber
+        return BundleElement(y.base.renormalized(), fiber)
+
     def algebra_zeros(self, y: BundleElement) -> AlgebraPair:
         z = y.base.algebra_zeros()
         return z, jnp.zeros_like(z)

@@ -184,6 +184,12 @@ class PositiveReals(pk.groups.AbstractLieGroup):
     def algebra_zeros(self):
         return jnp.zeros_like(self.value)
 
+    def project(self):
+        return self
+
+    def renormalized(self):
+        return self
+
     def check(self):
         return PositiveReals(eqx.error_if(self.value, jnp.any(self.value <= 0), "not positive"))
 

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .base import AbstractQuadraticGroup
-from ._util import as_array, check_floating, checked_rotation, taylor_or_exact
+from ._util import as_array, check_floating, checked_rotation, nearest_rotation, bjorck_step, taylor_or_exact
 
 # Below this θ² the Taylor branches are used; the exact forms that cancel
 # (θ − sin θ)/θ³ and the dexp⁻¹ coefficient lose ~eps/θ² relative accuracy.
@@ -174,6 +174,12 @@ class SO3(AbstractQuadraticGroup):
 
     def check(self) -> Self:
         return SO3(checked_rotation(self.matrix, "SO3"))
+
+    def project(self) -> Self:
+        return SO3(nearest_rotation(self.matrix))
+
+    def renormalized(self) -> Self:
+        return SO3(bjorck_step(self.matrix))
 
     # --- algebra ---------------------------------------------------------------
     @classmethod

@@ -10,7 +10,7 @@ from jaxtyping import Array, Float
 
 from .base import AbstractQuadraticGroup
 from ..series import dexp_inv_series
-from ._util import as_array, check_floating, checked_rotation
+from ._util import as_array, check_floating, checked_rotation, nearest_rotation, bjorck_step
 
 EXACT_SERIES_TERMS = 40
 """Terms of the Bernoulli series used as the 'exact' dexp⁻¹ on so(n).
@@ -91,6 +91,12 @@ class SOn(AbstractQuadraticGroup):
 
     def check(self) -> Self:
         return SOn(checked_rotation(self.matrix, "SOn"))
+
+    def project(self) -> Self:
+        return SOn(nearest_rotation(self.matrix))
+
+    def renormalized(self) -> Self:
+        return SOn(bjorck_step(self.matrix))
 
     @classmethod
     def bracket(cls, u, v):

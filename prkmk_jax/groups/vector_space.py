@@ -48,6 +48,12 @@ class VectorSpace(AbstractQuadraticGroup):
     def algebra_zeros(self):
         return jnp.zeros_like(self.value)
 
+    def project(self) -> Self:
+        return self
+
+    def renormalized(self) -> Self:
+        return self
+
     def check(self) -> Self:
         return VectorSpace(eqx.error_if(self.value, ~jnp.all(jnp.isfinite(self.value)), "VectorSpace element is not finite (NaN or inf)."))
 
