@@ -112,10 +112,26 @@ def solver_of(run: Run) -> PRKMK:
     return PRKMK(run.bundle, COORDINATES[run.coordinates], run.tableau, form="body", root_finder=root_finder)
 
 
-def execute(run: Run, seed: int, symplecticity: bool = True) -> tuple[dict, dict]:
+DEFAULT_CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "prkmk_jax" / "xla"
+"""Where compiled programs are kept between invocations (JAX's persistent
+compilation cache): a second run, or one with another `--time-scale` of
+the same shapes, skips most of the compilation."""
+
+
+def use_compilation_cache(cache_dir: Path | None) -> None:
+    """Keep every compiled program in `cache_dir` (None: no cache)."""
+    if cache_dir is None:
+        return
+    jax.config.update("jax_compilation_cache_dir", str(cache_dir))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def execute(run: Run, seed: int, symplecticity: bool = True, cache_dir: Path | None = None) -> tuple[dict, dict]:
     """Integrate one run; returns (its results record, its arrays).
     `symplecticity=False` skips the (compile-heavy) step-map Jacobian."""
     jax.config.update("jax_enable_x64", True)
+    use_compilation_cache(cache_dir)
     solver = solver_of(run)
     field = field_of(run)
     y0, inertia = initial_data(run, seed)
@@ -220,8 +236,14 @@ def main(argv=None) -> None:
     parser.add_argument("--seed", type=int, default=rb.PAPER_SEED, help="seed of the random initial attitudes")
     parser.add_argument("--time-scale", type=float, default=1.0, help="multiply every T (e.g. 0.05 for a smoke test)")
     parser.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes (default: up to 2)")
+    parser.add_argument(
+        "--cache-dir", type=Path, default=DEFAULT_CACHE, help=f"compiled programs kept between invocations (default: {DEFAULT_CACHE})"
+    )
+    parser.add_argument("--no-cache", action="store_true", help="compile everything afresh, keep nothing")
     args = parser.parse_args(argv)
+    cache_dir = None if args.no_cache else args.cache_dir
     jax.config.update("jax_enable_x64", True)
+    use_compilation_cache(cache_dir)
     args.out.mkdir(parents=True, exist_ok=True)
 
     runs = paper_runs(args.time_scale)
@@ -231,14 +253,35 @@ def main(argv=None) -> None:
     first_of_key = {}
     for r in runs:
         first_of_key.setdefault(key(r), r.name)
-    jobs = [(r, args.seed, first_of_key[key(r)] == r.name) for r in runs]
+    jobs = [(r, args.seed, first_of_key[key(r)] == r.name, cache_dir) for r in runs]
+    print(
+        f"{len(runs)} runs on {args.jobs} worker process(es); compiled programs "
+        + (f"cached in {cache_dir}" if cache_dir else "not cached")
+        + ". Each line is a finished run:",
+        flush=True,
+    )
     start = time.perf_counter()
+    outputs: list = [None] * len(jobs)
+
+    def report(index, output):
+        outputs[index] = output
+        record = output[0]
+        done = sum(o is not None for o in outputs)
+        print(
+            f"  [{done:2d}/{len(jobs)}] {record['run']:28s} compile {record['compile_time_s']:5.1f} s, "
+            f"run {record['wall_time_s']:5.1f} s   ({time.perf_counter() - start:5.1f} s elapsed)",
+            flush=True,
+        )
+
     if args.jobs > 1:
         context = multiprocessing.get_context("spawn")
         with concurrent.futures.ProcessPoolExecutor(args.jobs, mp_context=context) as pool:
-            outputs = list(pool.map(execute, *zip(*jobs)))
+            futures = {pool.submit(execute, *job): i for i, job in enumerate(jobs)}
+            for future in concurrent.futures.as_completed(futures):
+                report(futures[future], future.result())
     else:
-        outputs = [execute(*job) for job in jobs]
+        for i, job in enumerate(jobs):
+            report(i, execute(*job))
     records = [o[0] for o in outputs]
     arrays = {r.name: o[1] for r, o in zip(runs, outputs)}
     by_name = {rec["run"]: rec for rec in records}

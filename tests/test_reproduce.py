@@ -168,7 +168,8 @@ RECORD_FIELDS = {
 
 
 def test_reproduce_command_smoke(tmp_path, capsys):
-    rp.main(["--out", str(tmp_path), "--time-scale", "0.02", "--jobs", "1"])
+    # --no-cache: the persistent compilation cache is process-wide JAX state.
+    rp.main(["--out", str(tmp_path), "--time-scale", "0.02", "--jobs", "1", "--no-cache"])
     for i in range(1, 5):
         assert (tmp_path / f"fig5_{i}.png").stat().st_size > 10_000
     meta = json.loads((tmp_path / "results.json").read_text())
@@ -179,4 +180,8 @@ def test_reproduce_command_smoke(tmp_path, capsys):
         assert (record["symplecticity_defect"] is None) == (record["n"] != 3)
     data = np.load(tmp_path / "trajectories.npz")
     assert {"sym_SE_exp/Q", "sym_SE_exp/P", "sym_SE_exp/t", "unreduced_SV_cayley/g", "unreduced_SV_cayley/Pi"} <= set(data.files)
-    assert "max|ΔH|" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "max|ΔH|" in out
+    # Progress: one line per finished run, as it finishes.
+    runs = len(rp.paper_runs())
+    assert all(f"[{i:2d}/{runs}]" in out for i in range(1, runs + 1))

@@ -1,0 +1,114 @@
+"""SOn where its maps are hard: log near angle π and at the identity,
+dexp⁻¹ beyond the Bernoulli series' radius, broadcasting of dexp. Checked
+against SciPy (rotation vectors, logm), the group's own exp and dexp
+(expm and its Fréchet derivative), autodiff and finite differences."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.linalg
+from scipy.spatial.transform import Rotation
+
+import prkmk_jax as pk
+from prkmk_jax.groups.son import SERIES_RADIUS, _dexp_inv_closed_form
+
+RNG = np.random.default_rng(7)
+
+
+def _random_orthonormal(n, rng=RNG):
+    q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    return q
+
+
+def _generator(angles, n, basis):
+    """Skew matrix with the given rotation angles in the planes (e₀, e₁),
+    (e₂, e₃), … of `basis`."""
+    block = np.zeros((n, n))
+    for k, theta in enumerate(angles):
+        block[2 * k + 1, 2 * k], block[2 * k, 2 * k + 1] = theta, -theta
+    return basis @ block @ basis.T
+
+
+@pytest.mark.parametrize("eps", [1e-2, 1e-4, 1e-6, 1e-9, 1e-12])
+def test_so3_log_near_pi_matches_scipy(eps):
+    for _ in range(5):
+        axis = RNG.normal(size=3)
+        rotvec = axis / np.linalg.norm(axis) * (np.pi - eps)
+        matrix = Rotation.from_rotvec(rotvec).as_matrix()
+        log = np.asarray(pk.SOn(jnp.asarray(matrix)).log())
+        np.testing.assert_allclose(log, np.asarray(pk.hat(jnp.asarray(rotvec))), atol=2e-13)
+
+
+def test_log_at_angle_pi_exactly_is_a_logarithm():
+    for n in (3, 4):
+        basis = _random_orthonormal(n)
+        u = _generator([np.pi], n, basis)
+        matrix = scipy.linalg.expm(u)
+        log = pk.SOn(jnp.asarray(matrix)).log()
+        assert np.all(np.isfinite(log))
+        np.testing.assert_allclose(pk.SOn.exp(log).matrix, matrix, atol=1e-13)
+        np.testing.assert_allclose(np.abs(log), np.abs(u), atol=1e-13)  # ±πJ on the same plane
+
+
+@pytest.mark.parametrize(
+    "angles",
+    [(np.pi - 1e-9, 1.0), (np.pi - 1e-6, 0.0), (np.pi - 1e-3, np.pi - 0.3), (2.0, 1e-8), (3.0, 3.0), (0.3, 0.2)],
+    ids=["pi-1e-9,1", "pi-1e-6,0", "pi-1e-3,pi-0.3", "2,1e-8", "3,3", "0.3,0.2"],
+)
+@pytest.mark.parametrize("n", [4, 5])
+def test_son_log_inverts_exp_and_matches_scipy(angles, n):
+    u = _generator(angles, n, _random_orthonormal(n))
+    matrix = scipy.linalg.expm(u)
+    log = np.asarray(pk.SOn(jnp.asarray(matrix)).log())
+    np.testing.assert_allclose(log, u, atol=1e-11)
+    if max(angles) < 3.0:  # SciPy's logm is itself inaccurate near π
+        np.testing.assert_allclose(log, np.real(scipy.linalg.logm(matrix)), atol=1e-11)
+
+
+def test_log_gradient_is_finite_at_the_identity_and_matches_finite_differences():
+    def log_of(params, n=4, base=None):
+        u = jnp.zeros((n, n)).at[jnp.triu_indices(n, 1)].set(params)
+        u = u - u.T
+        r = pk.SOn.exp(u) if base is None else pk.SOn(base @ pk.SOn.exp(u).matrix)
+        return r.log()[jnp.triu_indices(n, 1)]
+
+    at_identity = jax.jacfwd(log_of)(jnp.zeros(6))
+    np.testing.assert_allclose(at_identity, np.eye(6), atol=1e-12)
+    assert np.all(np.isfinite(jax.jacrev(log_of)(jnp.zeros(6))))
+    base = jnp.asarray(scipy.linalg.expm(_generator([1.2, 0.4], 4, _random_orthonormal(4))))
+    params = jnp.zeros(6)
+    jac = jax.jacfwd(lambda p: log_of(p, base=base))(params)
+    step = 1e-6
+    fd = np.stack([(log_of(params + step * e, base=base) - log_of(params - step * e, base=base)) / (2 * step) for e in np.eye(6)], axis=1)
+    np.testing.assert_allclose(jac, fd, atol=1e-7)
+
+
+@pytest.mark.parametrize("angles", [(3.0, 3.0), (3.1, 1.0), (2.5, 0.0), (1.0, 0.5), (0.0, 0.0)])
+def test_dexp_inv_inverts_dexp_beyond_the_series_radius(angles):
+    """‖ad_u‖ = |θ₁| + |θ₂| up to 6.0 (the series needs < 2π and is slow past
+    2.5): dexp⁻¹ must undo dexp (the Fréchet derivative of expm)."""
+    n = 4
+    u = jnp.asarray(_generator(angles, n, _random_orthonormal(n)))
+    v = jnp.asarray(_generator([0.7, -0.2], n, _random_orthonormal(n)))
+    np.testing.assert_allclose(pk.SOn.dexp_inv(u, pk.SOn.dexp(u, v)), v, atol=1e-11)
+    np.testing.assert_allclose(pk.SOn.dexp(u, pk.SOn.dexp_inv(u, v)), v, atol=1e-11)
+
+
+def test_dexp_inv_branches_agree_at_the_radius_and_its_gradient_is_finite_at_zero():
+    u = _generator([1.0, 0.4], 4, _random_orthonormal(4))
+    u = jnp.asarray(u / np.linalg.norm(u) * SERIES_RADIUS * 0.999)
+    v = jnp.asarray(_generator([0.3, 0.9], 4, _random_orthonormal(4)))
+    np.testing.assert_allclose(_dexp_inv_closed_form(u, v), pk.SOn.dexp_inv(u, v), atol=1e-13)
+    grad = jax.jacfwd(lambda w: pk.SOn.dexp_inv(w, v))(jnp.zeros((4, 4)))
+    assert np.all(np.isfinite(grad))
+
+
+def test_dexp_and_dexp_inv_broadcast_batch_axes():
+    us = jnp.asarray(np.stack([_generator([0.5 * k, 0.1], 4, _random_orthonormal(4)) for k in range(3)]))
+    v = jnp.asarray(_generator([0.3, 0.2], 4, _random_orthonormal(4)))
+    batched = pk.SOn.dexp(us, v)
+    assert batched.shape == (3, 4, 4)
+    for k in range(3):
+        np.testing.assert_allclose(batched[k], pk.SOn.dexp(us[k], v), atol=1e-14)
+    np.testing.assert_allclose(pk.SOn.dexp_inv(us, batched), jnp.broadcast_to(v, us.shape), atol=1e-12)
