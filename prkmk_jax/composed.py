@@ -108,7 +108,7 @@ class Adjoint(AbstractMadeOfSteps):
 
         stages, result, iterations = method.solve_implicit(all_slopes, guesses, dtype)
         u_next = increment(stages)
-        y_next = method.apply_increment(u_next, y)
+        y_next = method.advance(u_next, y)
         return y_next, u_next, flag_nonfinite(result, y_next), iterations, (field_now, stages)
 
 

@@ -23,6 +23,11 @@ from .bundles import AbstractBundle, AlgebraPair, BundleElement
 from .coordinates import AbstractCoordinates
 
 RESULTS = diffrax.RESULTS
+LOW_PRECISION_EPS = 1e-10
+"""States of a dtype whose machine epsilon is above this (float32, bfloat16,
+float16) are renormalised after each step (`AbstractMethod.advance`). In
+float64 the drift stays below 1e-7 over 10⁹ steps and the state is left
+exactly as the coordinate map gives it."""
 VectorField = Callable[[Array, BundleElement, PyTree], AlgebraPair]
 """`f(t, y, args) -> (ξ, η)`: the generator of y' = (ξ, η)·y (space form) or
 y' = y·(ξ, η) (body form)."""
@@ -73,7 +78,7 @@ class AbstractMethod(eqx.Module):
     ) -> tuple[BundleElement, AlgebraPair, RESULTS, Array, Any]:
         """One step from (t, y) to t + dt. Returns (y_next, increment, result,
         iterations, carried for the next step): `increment` is the U with
-        `apply_increment(U, y) = y_next`, `iterations` the implicit iterations
+        `advance(U, y) = y_next`, `iterations` the implicit iterations
         taken."""
 
     @abc.abstractmethod
@@ -85,6 +90,17 @@ class AbstractMethod(eqx.Module):
     def apply_increment(self, U: AlgebraPair, y: BundleElement) -> BundleElement:
         """f(U)·y (space form) or y·f(U) (body form), f the coordinate map."""
         return self.coordinates.apply(self.bundle, U, y, self.form)
+
+    def advance(self, U: AlgebraPair, y: BundleElement) -> BundleElement:
+        """The step's new state: `apply_increment(U, y)`, and in low precision
+        (machine epsilon above `LOW_PRECISION_EPS`) corrected back onto the
+        group (`AbstractBundle.renormalized`): there the rounding of f(U) and
+        of the product is systematic for steady motions and would pull the
+        state off the group a little every step (float32: ~5e-8 a step)."""
+        y_next = self.apply_increment(U, y)
+        if jnp.finfo(jnp.result_type(*jax.tree.leaves(y_next))).eps > LOW_PRECISION_EPS:
+            y_next = self.bundle.renormalized(y_next)
+        return y_next
 
     def increment_between(self, y: BundleElement, y_next: BundleElement) -> AlgebraPair:
         """The U near 0 with `apply_increment(U, y) = y_next`: f⁻¹(y_next·y⁻¹)
@@ -138,7 +154,7 @@ class AbstractMethod(eqx.Module):
         self, vector_field: VectorField, t: Array, y: BundleElement, dt: Array, args: PyTree = None
     ) -> tuple[BundleElement, AlgebraPair, RESULTS, Array]:
         """As `step`, also returning the increment U of the step
-        (y_next = `apply_increment(U, y)`)."""
+        (y_next = `advance(U, y)`)."""
         carried = self.initial_guesses(vector_field, t, y, args)
         y_next, increment, result, iterations, _ = self.step_with_guesses(vector_field, t, y, dt, args, carried)
         return y_next, increment, result, iterations
