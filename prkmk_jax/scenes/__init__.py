@@ -1,3 +1,5 @@
+from .base import AbstractScene as AbstractScene
+from .heavy_top import HeavyTop as HeavyTop, TopParameters as TopParameters
 from .rigid_body import (
     PAPER_INERTIA as PAPER_INERTIA,
     PAPER_MOMENTUM as PAPER_MOMENTUM,

@@ -1,0 +1,69 @@
+"""A scene: a mechanical system on a bundle group, as one object.
+
+It owns what every user of the system needs and would otherwise write again:
+its bundle and form, its generator (the vector field of a `PRKMK` method),
+the methods built for it, its invariants, and its field on the Euclidean
+embedding ℝ⁹×ℝ³ for the solvers it is compared with.
+"""
+
+import abc
+from typing import Literal
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float, PyTree
+
+from ..bundles import AbstractBundle, AlgebraPair, BundleElement
+from ..coordinates import AbstractCoordinates, Exp
+from ..step import PRKMK
+from ..tableaus import PartitionedTableau
+
+
+class AbstractScene(eqx.Module):
+    """A system y' = y·(ξ, η) (body form) or (ξ, η)·y (space form) on a
+    bundle group. Calling the scene is its generator, so it is itself the
+    vector field: `integrate(scene.method(tableau), scene, y0, …)`,
+    `PRKMKTerm(scene)`. Physical parameters are `args` (differentiable, no
+    recompilation)."""
+
+    @property
+    @abc.abstractmethod
+    def bundle(self) -> AbstractBundle:
+        """The bundle group the state lives on."""
+
+    @property
+    @abc.abstractmethod
+    def form(self) -> Literal["space", "body"]:
+        """Whether the generator acts from the left (space) or right (body)."""
+
+    @abc.abstractmethod
+    def __call__(self, t: Array, y: BundleElement, args: PyTree) -> AlgebraPair:
+        """The generator (ξ, η) at (t, y)."""
+
+    @abc.abstractmethod
+    def invariants(self, y: BundleElement, args: PyTree) -> dict[str, Array]:
+        """The quantities the exact flow keeps, for states with any leading
+        axes (a trajectory): name → values."""
+
+    @abc.abstractmethod
+    def to_embedding(self, y: BundleElement) -> Float[Array, "*batch d"]:
+        """The state as a flat vector of the Euclidean embedding."""
+
+    @abc.abstractmethod
+    def embedding_field(self, t: Array, z: Float[Array, " d"], args: PyTree) -> Float[Array, " d"]:
+        """dz/dt on the embedding, for Euclidean solvers (`diffrax.ODETerm`).
+        Nothing there keeps the state on the group: that is what such a
+        comparison measures."""
+
+    def method(
+        self, tableau: PartitionedTableau, coordinates: AbstractCoordinates | None = None, **options
+    ) -> PRKMK:
+        """The PRKMK method of `tableau` for this scene's bundle and form
+        (exp coordinates unless given; `options` go to `PRKMK`)."""
+        return PRKMK(self.bundle, Exp() if coordinates is None else coordinates, tableau, form=self.form, **options)
+
+
+def rotation_and_vector_embedding(y: BundleElement) -> Float[Array, "*batch 12"]:
+    """(Q row-major, v) for a state on SO(3) with a 3-vector fiber."""
+    q = y.base.matrix
+    return jnp.concatenate([q.reshape(*q.shape[:-2], 9), y.fiber], axis=-1)

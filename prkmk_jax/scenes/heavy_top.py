@@ -1,0 +1,78 @@
+"""The heavy top: a rigid body about a fixed point, in gravity, on T*SO(3).
+
+With e₃ pointing up, Q the attitude (body → space), Π the body angular
+momentum, Ω = I⁻¹Π and Γ = Qᵀe₃ the vertical seen from the body:
+
+    Q' = QΩ̂,   Π' = Π × Ω + Γ × ℓ,   ℓ = m g χ,
+
+where χ is the body-frame vector from the fixed point to the centre of mass
+(the Euler–Poisson equations; Γ' = Γ × Ω follows from Q'). The energy
+H = ½Π·Ω + ℓ·Γ (kinetic plus m g times the height of the centre of mass)
+and the vertical angular momentum Γ·Π = e₃·QΠ are kept by the exact flow.
+For a Lagrange top (I₁ = I₂, χ on the symmetry axis e₃) the spin Π₃ is kept
+as well.
+
+On the left-trivialised cotangent bundle, body form, the product supplies
+Π × Ω, so the generator is (ξ, η) = (Ω, Γ × ℓ): unlike the free body, the
+fiber moves on its own (η ≠ 0).
+"""
+
+from typing import Literal
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .. import diagnostics
+from ..bundles import AbstractBundle, BundleElement, Cotangent
+from ..groups import SO3, hat
+from .base import AbstractScene, rotation_and_vector_embedding
+
+
+class TopParameters(eqx.Module):
+    """The physical parameters of a heavy top (pass them as `args`)."""
+
+    inertia: Float[Array, "3"]
+    """Principal moments of inertia about the fixed point, body frame."""
+    lever: Float[Array, "3"]
+    """ℓ = m g χ: the weight times the body-frame vector from the fixed point
+    to the centre of mass."""
+
+
+def _vertical(q: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
+    """Γ = Qᵀe₃, the last row of Q."""
+    return q[..., 2, :]
+
+
+class HeavyTop(AbstractScene):
+    """The heavy top on `Cotangent(SO3)`, body form; `args` is `TopParameters`."""
+
+    @property
+    def bundle(self) -> AbstractBundle:
+        return Cotangent(SO3)
+
+    @property
+    def form(self) -> Literal["space", "body"]:
+        return "body"
+
+    def __call__(self, t, y: BundleElement, args: TopParameters):
+        omega = y.fiber / args.inertia
+        return omega, jnp.cross(_vertical(y.base.matrix), args.lever)
+
+    def invariants(self, y: BundleElement, args: TopParameters) -> dict[str, Array]:
+        q, pi = y.base.matrix, y.fiber
+        gamma = _vertical(q)
+        kinetic = diagnostics.energy(pi, pi / args.inertia)
+        return {
+            "energy": kinetic + jnp.sum(args.lever * gamma, axis=-1),
+            "vertical momentum": jnp.sum(gamma * pi, axis=-1),
+            "orthogonality": diagnostics.orthogonality_defect(q),
+        }
+
+    def to_embedding(self, y: BundleElement) -> Float[Array, "*batch 12"]:
+        return rotation_and_vector_embedding(y)
+
+    def embedding_field(self, t, z: Float[Array, "12"], args: TopParameters) -> Float[Array, "12"]:
+        q, pi = z[:9].reshape(3, 3), z[9:]
+        omega = pi / args.inertia
+        return jnp.concatenate([(q @ hat(omega)).ravel(), jnp.cross(pi, omega) + jnp.cross(_vertical(q), args.lever)])
