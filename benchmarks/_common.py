@@ -7,7 +7,7 @@ the embedding ℝ⁹×ℝ³ (the rotation matrix flattened row-major, then Π).
 
 Accuracy oracle: SciPy DOP853 at rtol = atol = 1e-13 on the embedding. Its
 body momentum is cross-checked against the closed-form solution through
-Jacobi elliptic functions (`elliptic_momentum`), in
+Jacobi elliptic functions (`prkmk_jax.scenes.elliptic_momentum`), in
 `tests/test_benchmark_reference.py`.
 """
 
@@ -26,7 +26,6 @@ import numpy as np
 import prkmk_jax as pk
 from prkmk_jax.scenes import rigid_body as rb
 from scipy.integrate import solve_ivp
-from scipy.special import ellipj, ellipkinc
 
 INERTIA = np.asarray(rb.PAPER_INERTIA)
 MOMENTUM = np.asarray(rb.PAPER_MOMENTUM)
@@ -84,48 +83,6 @@ def reference(q0, pi0, t_end, inertia=INERTIA, t_eval=None, tol=1e-13):
         raise RuntimeError(sol.message)
     z = sol.y[:, -1] if t_eval is None else sol.y.T
     return from_vector(z)
-
-
-def elliptic_momentum(pi0, inertia, t):
-    """Body momentum Π(t) of Euler's equations Π' = Π × I⁻¹Π in closed form.
-
-    With the axes ordered so that I_c, I_s, I_d are the inertia of the axes
-    carrying cn, sn and dn, Π_c = A_c cn u, Π_s = A_s sn u, Π_d = ±A_d dn u,
-    u = ±λt + u₀ (Landau–Lifshitz §37): the dn axis is the one of largest
-    inertia when |Π|² > 2H·I_mid, of smallest inertia otherwise. u₀ comes
-    from the initial phase, the signs from Π₀ and from Π'(0).
-    """
-    pi0, inertia, t = (
-        np.asarray(pi0, float),
-        np.asarray(inertia, float),
-        np.asarray(t, float),
-    )
-    m2 = pi0 @ pi0
-    two_h = pi0 @ (pi0 / inertia)
-    order = np.argsort(inertia)
-    lo, mid, hi = order
-    c, s, d = (lo, mid, hi) if m2 > two_h * inertia[mid] else (hi, mid, lo)
-    i_c, i_s, i_d = inertia[c], inertia[s], inertia[d]
-    a_c = i_c * np.sqrt((two_h * i_d - m2) / (i_c * (i_d - i_c)))
-    a_s = i_s * np.sqrt((two_h * i_d - m2) / (i_s * (i_d - i_s)))
-    a_d = i_d * np.sqrt((m2 - two_h * i_c) / (i_d * (i_d - i_c)))
-    lam = np.sqrt((i_d - i_s) * (m2 - two_h * i_c) / (i_c * i_s * i_d))
-    k2 = (i_s - i_c) * (two_h * i_d - m2) / ((i_d - i_s) * (m2 - two_h * i_c))
-    phi0 = np.arctan2(pi0[s] / a_s, pi0[c] / a_c)
-    u0 = ellipkinc(phi0, k2)
-    sn0, cn0, dn0, _ = ellipj(u0, k2)
-    # The direction of u: match d/dt of the sn and cn components at t = 0.
-    dpi0 = np.cross(pi0, pi0 / inertia)
-    rate_s, rate_c = a_s * cn0 * dn0 * lam, -a_c * sn0 * dn0 * lam
-    sigma = np.sign(dpi0[s] * rate_s + dpi0[c] * rate_c) or 1.0
-    sn, cn, dn, _ = ellipj(sigma * lam * t + u0, k2)
-    out = np.empty(t.shape + (3,))
-    out[..., c], out[..., s], out[..., d] = (
-        a_c * cn,
-        a_s * sn,
-        np.sign(pi0[d]) * a_d * dn,
-    )
-    return out
 
 
 # --- measures ----------------------------------------------------------------------

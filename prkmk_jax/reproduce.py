@@ -26,6 +26,7 @@ from .bundles import AbstractBundle, Cartesian, Cotangent, DirectProduct
 from .coordinates import Cayley, Exp
 from .groups import SO3, SOn
 from .integrate import integrate
+from .scenes import AbstractScene
 from .scenes import rigid_body as rb
 from .step import PRKMK, RESULTS
 from .tableaus import PartitionedTableau, stormer_verlet, symplectic_euler
@@ -88,8 +89,9 @@ def initial_data(run: Run, seed: int):
     return rb.symmetric_initial_state(q0, m0), jnp.asarray(SO4_MASSES)
 
 
-def field_of(run: Run):
-    return rb.symmetric_rigid_body if run.scene == "symmetric" else rb.unreduced_rigid_body(run.bundle)
+def scene_of(run: Run) -> AbstractScene:
+    """The scene object of a run: its vector field and its methods."""
+    return rb.SymmetricRigidBody(run.bundle) if run.scene == "symmetric" else rb.FreeRigidBody(run.bundle)
 
 
 def _step_map(solver, field, bundle, h, inertia):
@@ -109,7 +111,7 @@ def solver_of(run: Run) -> PRKMK:
     other runs converge in ≤ 24 fixed-point iterations, cheaper than Newton's
     dense Jacobians (on SO(4)² Newton took 5.2 s against 0.7 s)."""
     root_finder = optx.Newton(rtol=1e-12, atol=1e-12) if (run.scene == "symmetric" and run.n == 3) else None
-    return PRKMK(run.bundle, COORDINATES[run.coordinates], run.tableau, form="body", root_finder=root_finder)
+    return scene_of(run).method(run.tableau, COORDINATES[run.coordinates], root_finder=root_finder)
 
 
 DEFAULT_CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "prkmk_jax" / "xla"
@@ -133,7 +135,7 @@ def execute(run: Run, seed: int, symplecticity: bool = True, cache_dir: Path | N
     jax.config.update("jax_enable_x64", True)
     use_compilation_cache(cache_dir)
     solver = solver_of(run)
-    field = field_of(run)
+    field = scene_of(run)
     y0, inertia = initial_data(run, seed)
     simulate = jax.jit(lambda y0, inertia: integrate(solver, field, y0, 0.0, run.h, run.num_steps, inertia, save_every=run.save_every))
     start = time.perf_counter()

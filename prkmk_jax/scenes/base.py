@@ -26,15 +26,10 @@ class AbstractScene(eqx.Module):
     `PRKMKTerm(scene)`. Physical parameters are `args` (differentiable, no
     recompilation)."""
 
-    @property
-    @abc.abstractmethod
-    def bundle(self) -> AbstractBundle:
-        """The bundle group the state lives on."""
-
-    @property
-    @abc.abstractmethod
-    def form(self) -> Literal["space", "body"]:
-        """Whether the generator acts from the left (space) or right (body)."""
+    bundle: eqx.AbstractVar[AbstractBundle]
+    """The bundle group the state lives on."""
+    form: eqx.AbstractVar[Literal["space", "body"]]
+    """Whether the generator acts from the left (space) or right (body)."""
 
     @abc.abstractmethod
     def __call__(self, t: Array, y: BundleElement, args: PyTree) -> AlgebraPair:

@@ -14,12 +14,18 @@ The inertia is passed as `args` (differentiable, no recompiles): for SO(3) a
 is I_k = J_i + J_j).
 """
 
+from typing import Literal
+
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ..bundles import AbstractSemidirect, BundleElement, Cartesian, DirectProduct
+from .. import diagnostics
+from ..bundles import AbstractBundle, AbstractSemidirect, BundleElement, Cartesian, Cotangent, DirectProduct
 from ..groups import SO3, SOn, hat, vee
+from .base import AbstractScene, rotation_and_vector_embedding
 
 PAPER_INERTIA = np.array([7 / 8, 5 / 8, 1 / 4])
 """Eq. (5.2), acting on the vector form of M."""
@@ -153,3 +159,136 @@ def from_attitude_and_momentum(bundle, g: Array, pi: Array) -> BundleElement:
         s = jnp.arcsin(norm / 2) / norm * pi
         return BundleElement(SO3(g), SO3(g @ SO3.exp(s).matrix))
     return BundleElement(SO3(g), pi)
+
+
+def elliptic_momentum(pi0, inertia, t) -> np.ndarray:
+    """Body momentum Π(t) of Euler's equations Π' = Π × I⁻¹Π in closed form
+    (NumPy/SciPy, float64), for principal moments `inertia` (3,) with three
+    distinct values.
+
+    With the axes ordered so that I_c, I_s, I_d are the inertia of the axes
+    carrying cn, sn and dn, Π_c = A_c cn u, Π_s = A_s sn u, Π_d = ±A_d dn u,
+    u = ±λt + u₀ (Landau–Lifshitz §37): the dn axis is the one of largest
+    inertia when |Π|² > 2H·I_mid, of smallest inertia otherwise. u₀ comes
+    from the initial phase, the signs from Π₀ and from Π'(0).
+    """
+    from scipy.special import ellipj, ellipkinc
+
+    pi0, inertia, t = np.asarray(pi0, float), np.asarray(inertia, float), np.asarray(t, float)
+    if inertia.shape != (3,) or len(set(inertia.tolist())) != 3:
+        raise ValueError(f"the closed form needs three distinct principal moments, got {inertia}.")
+    m2 = pi0 @ pi0
+    two_h = pi0 @ (pi0 / inertia)
+    lo, mid, hi = np.argsort(inertia)
+    c, s, d = (lo, mid, hi) if m2 > two_h * inertia[mid] else (hi, mid, lo)
+    i_c, i_s, i_d = inertia[c], inertia[s], inertia[d]
+    a_c = i_c * np.sqrt((two_h * i_d - m2) / (i_c * (i_d - i_c)))
+    a_s = i_s * np.sqrt((two_h * i_d - m2) / (i_s * (i_d - i_s)))
+    a_d = i_d * np.sqrt((m2 - two_h * i_c) / (i_d * (i_d - i_c)))
+    lam = np.sqrt((i_d - i_s) * (m2 - two_h * i_c) / (i_c * i_s * i_d))
+    k2 = (i_s - i_c) * (two_h * i_d - m2) / ((i_d - i_s) * (m2 - two_h * i_c))
+    phi0 = np.arctan2(pi0[s] / a_s, pi0[c] / a_c)
+    u0 = ellipkinc(phi0, k2)
+    sn0, cn0, dn0, _ = ellipj(u0, k2)
+    # The direction of u: match d/dt of the sn and cn components at t = 0.
+    dpi0 = np.cross(pi0, pi0 / inertia)
+    rate_s, rate_c = a_s * cn0 * dn0 * lam, -a_c * sn0 * dn0 * lam
+    sigma = np.sign(dpi0[s] * rate_s + dpi0[c] * rate_c) or 1.0
+    sn, cn, dn, _ = ellipj(sigma * lam * t + u0, k2)
+    out = np.empty(t.shape + (3,))
+    out[..., c], out[..., s], out[..., d] = a_c * cn, a_s * sn, np.sign(pi0[d]) * a_d * dn
+    return out
+
+
+class FreeRigidBody(AbstractScene):
+    """The unreduced free rigid body g' = gΩ, Π' = Π × Ω on T*SO(3), body form.
+
+    `bundle` is `Cotangent(SO3)` (default) or `Semidirect(SO3, "left")`,
+    where the product supplies Π × Ω and the generator is (Ω, 0), or
+    `DirectProduct(SO3)` with (Ω, Π × Ω). `args` is the inertia: principal
+    moments (3,) or a symmetric positive-definite tensor (3, 3) in the body
+    frame (Ω = I⁻¹Π)."""
+
+    bundle: AbstractBundle = eqx.field(default_factory=lambda: Cotangent(SO3))
+    form: Literal["space", "body"] = eqx.field(default="body", static=True)
+
+    def __check_init__(self):
+        left = isinstance(self.bundle, AbstractSemidirect) and self.bundle.trivialization == "left"
+        if not (left or isinstance(self.bundle, DirectProduct)) or self.bundle.base is not SO3:
+            raise TypeError(
+                "FreeRigidBody lives on Cotangent(SO3), Semidirect(SO3, 'left') or DirectProduct(SO3), "
+                f"got {type(self.bundle).__name__}."
+            )
+        if self.form != "body":
+            raise ValueError("FreeRigidBody is written in body form.")
+
+    def __call__(self, t, y: BundleElement, inertia):
+        omega = _body_rate(y.fiber, inertia)
+        if isinstance(self.bundle, DirectProduct):
+            return omega, jnp.cross(y.fiber, omega)
+        return omega, jnp.zeros_like(omega)
+
+    def invariants(self, y: BundleElement, inertia) -> dict[str, Array]:
+        g, pi = y.base.matrix, y.fiber
+        omega = jax.vmap(_body_rate, in_axes=(0, None))(pi.reshape(-1, 3), inertia).reshape(pi.shape)
+        return {
+            "energy": diagnostics.energy(pi, omega),
+            "momentum norm": diagnostics.body_momentum_norm(pi),
+            "spatial momentum": diagnostics.spatial_momentum(g, pi),
+            "orthogonality": diagnostics.orthogonality_defect(g),
+        }
+
+    def to_embedding(self, y: BundleElement) -> Float[Array, "*batch 12"]:
+        return rotation_and_vector_embedding(y)
+
+    def embedding_field(self, t, z, inertia):
+        return embedding_field(t, z, inertia)
+
+
+def _body_rate(pi, inertia):
+    inertia = jnp.asarray(inertia)
+    return pi / inertia if inertia.ndim == 1 else jnp.linalg.solve(inertia, pi)
+
+
+class SymmetricRigidBody(AbstractScene):
+    """The symmetric rigid body (3.3) on SO(n)×SO(n), body form: Q' = QΩ,
+    P' = PΩ with M = QᵀP − PᵀQ and Ω = I⁻¹M (`angular_velocity`).
+
+    `bundle` is `Cartesian(SO3)` (default; `args` the principal moments (3,))
+    or `Cartesian(SOn)` (`args` the n "masses" J, M = JΩ + ΩJ)."""
+
+    bundle: AbstractBundle = eqx.field(default_factory=lambda: Cartesian(SO3))
+    form: Literal["space", "body"] = eqx.field(default="body", static=True)
+
+    def __check_init__(self):
+        if not (isinstance(self.bundle, Cartesian) and self.bundle.base in (SO3, SOn)):
+            raise TypeError(f"SymmetricRigidBody lives on Cartesian(SO3) or Cartesian(SOn), got {self.bundle!r}.")
+        if self.form != "body":
+            raise ValueError("SymmetricRigidBody is written in body form.")
+
+    def __call__(self, t, y: BundleElement, inertia):
+        return symmetric_rigid_body(t, y, inertia)
+
+    def invariants(self, y: BundleElement, inertia) -> dict[str, Array]:
+        g, m = attitude_and_momentum(self.bundle, y)
+        matrix = self.bundle.base is SOn
+        return {
+            "energy": diagnostics.energy(m, angular_velocity(m, inertia), matrix),
+            "momentum norm": diagnostics.body_momentum_norm(m, matrix),
+            "spatial momentum": diagnostics.spatial_momentum(g, m, matrix),
+            "orthogonality": jnp.maximum(
+                diagnostics.orthogonality_defect(y.base.matrix), diagnostics.orthogonality_defect(y.fiber.matrix)
+            ),
+        }
+
+    def to_embedding(self, y: BundleElement) -> Float[Array, "*batch d"]:
+        q, p = y.base.matrix, y.fiber.matrix
+        return jnp.concatenate([q.reshape(*q.shape[:-2], -1), p.reshape(*p.shape[:-2], -1)], axis=-1)
+
+    def embedding_field(self, t, z, inertia):
+        n = int(round((z.shape[-1] // 2) ** 0.5))
+        q, p = z[: n * n].reshape(n, n), z[n * n :].reshape(n, n)
+        m = q.T @ p - p.T @ q
+        omega = angular_velocity(vee(m), inertia) if n == 3 else angular_velocity(m, inertia)
+        omega_hat = hat(omega) if n == 3 else omega
+        return jnp.concatenate([(q @ omega_hat).ravel(), (p @ omega_hat).ravel()])
