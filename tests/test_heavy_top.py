@@ -119,7 +119,7 @@ def test_cayley_stormer_verlet_keeps_the_vertical_momentum_to_round_off():
 
 
 def test_diffeqsolve_with_the_scene_as_term_and_gradient_in_the_parameters():
-    method = pk.Symmetrized(TOP.method(pk.stormer_verlet))
+    method = TOP.method(pk.stormer_verlet)
 
     def final_momentum_projection(lever):
         args = TopParameters(ASYMMETRIC.inertia, lever)
