@@ -1,4 +1,10 @@
 from .base import AbstractScene as AbstractScene
+from .forced_body import (
+    ForcedParameters as ForcedParameters,
+    ForcedRigidBody as ForcedRigidBody,
+    HarmonicTorque as HarmonicTorque,
+    harmonic_torque as harmonic_torque,
+)
 from .heavy_top import HeavyTop as HeavyTop, TopParameters as TopParameters
 from .rigid_body import (
     PAPER_INERTIA as PAPER_INERTIA,

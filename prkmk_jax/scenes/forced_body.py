@@ -1,0 +1,83 @@
+"""A rigid body driven by a time-dependent control torque, on T*SO(3).
+
+    Q' = QΩ̂,   Π' = Π × Ω + τ(t),   Ω = I⁻¹Π,
+
+with τ(t) a body-frame torque given by a torque law τ(t, params). The field
+is non-autonomous and nothing is conserved but QᵀQ = I; the energy follows
+the balance dH/dt = Ω·τ (`power`), so H(T) − H(0) is the work the torque
+did. On the left-trivialised cotangent bundle, body form, the generator is
+(Ω, τ(t)).
+"""
+
+from collections.abc import Callable
+from typing import Literal
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float, PyTree
+
+from .. import diagnostics
+from ..bundles import AbstractBundle, BundleElement, Cotangent
+from ..groups import SO3, hat
+from .base import AbstractScene, rotation_and_vector_embedding
+
+
+class HarmonicTorque(eqx.Module):
+    """τ(t)_k = a_k sin(ω_k t + φ_k): the parameters of `harmonic_torque`."""
+
+    amplitude: Float[Array, "3"]
+    frequency: Float[Array, "3"]
+    phase: Float[Array, "3"]
+
+
+def harmonic_torque(t: Array, params: HarmonicTorque) -> Float[Array, "3"]:
+    """The default torque law, body frame."""
+    return params.amplitude * jnp.sin(params.frequency * t + params.phase)
+
+
+class ForcedParameters(eqx.Module):
+    """`args` of a `ForcedRigidBody`."""
+
+    inertia: Float[Array, "3"]
+    """Principal moments of inertia."""
+    torque: PyTree
+    """The torque law's parameters (differentiable, e.g. for fitting)."""
+
+
+class ForcedRigidBody(AbstractScene):
+    """The rigid body with a control torque on `Cotangent(SO3)`, body form;
+    `args` is `ForcedParameters`. `torque_law(t, params)` returns the
+    body-frame torque (default `harmonic_torque`)."""
+
+    torque_law: Callable[[Array, PyTree], Float[Array, "3"]] = eqx.field(static=True, default=harmonic_torque)
+
+    @property
+    def bundle(self) -> AbstractBundle:
+        return Cotangent(SO3)
+
+    @property
+    def form(self) -> Literal["space", "body"]:
+        return "body"
+
+    def __call__(self, t, y: BundleElement, args: ForcedParameters):
+        return y.fiber / args.inertia, self.torque_law(t, args.torque)
+
+    def power(self, t, y: BundleElement, args: ForcedParameters) -> Array:
+        """dH/dt = Ω·τ(t), the rate at which the torque does work."""
+        return jnp.sum(y.fiber / args.inertia * self.torque_law(t, args.torque), axis=-1)
+
+    def invariants(self, y: BundleElement, args: ForcedParameters) -> dict[str, Array]:
+        """Only QᵀQ = I is kept; the energy (returned too, as "energy") obeys
+        the balance dH/dt = `power`."""
+        return {
+            "energy": diagnostics.energy(y.fiber, y.fiber / args.inertia),
+            "orthogonality": diagnostics.orthogonality_defect(y.base.matrix),
+        }
+
+    def to_embedding(self, y: BundleElement) -> Float[Array, "*batch 12"]:
+        return rotation_and_vector_embedding(y)
+
+    def embedding_field(self, t, z, args: ForcedParameters):
+        q, pi = z[:9].reshape(3, 3), z[9:]
+        omega = pi / args.inertia
+        return jnp.concatenate([(q @ hat(omega)).ravel(), jnp.cross(pi, omega) + self.torque_law(t, args.torque)])
