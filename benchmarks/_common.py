@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import prkmk_jax as pk
+from prkmk_jax.scenes import FreeRigidBody
 from prkmk_jax.scenes import rigid_body as rb
 from scipy.integrate import solve_ivp
 
@@ -53,8 +54,11 @@ def embedding_rhs_np(t, z, inertia):
     return np.concatenate([(q @ _hat_np(omega)).ravel(), np.cross(pi, omega)])
 
 
-embedding_rhs = rb.embedding_field
-"""The same field in JAX, for diffrax's ODETerm (a flat 12-vector)."""
+SCENE = FreeRigidBody()
+"""The free rigid body on `Cotangent(SO3)`, body form: the PRKMK methods'
+vector field (`SCENE.method(tableau)` builds them) and, through
+`SCENE.embedding_field`, the peers' field on the flat 12-vector."""
+embedding_rhs = SCENE.embedding_field
 
 
 def to_vector(q, pi):
@@ -113,13 +117,7 @@ MAX_STEPS = 1_000_000
 
 def prkmk_solver(tableau, coordinates="exp", adaptive=False, root_finder=None):
     coords = pk.Exp() if coordinates == "exp" else pk.Cayley()
-    method = pk.PRKMK(
-        pk.Cotangent(pk.SO3), coords, tableau, form="body", root_finder=root_finder
-    )
-    return pk.PRKMKSolver(method, adaptive=adaptive)
-
-
-FIELD = rb.unreduced_rigid_body(pk.Cotangent(pk.SO3))
+    return pk.PRKMKSolver(SCENE.method(tableau, coords, root_finder=root_finder), adaptive=adaptive)
 
 
 def integrate_final(method, steps, h):
@@ -128,7 +126,7 @@ def integrate_final(method, steps, h):
 
     def run(q0, pi0, inertia):
         y0 = pk.BundleElement(pk.SO3(q0), pi0)
-        traj = pk.integrate(method, FIELD, y0, 0.0, h, steps, inertia, save_every=steps)
+        traj = pk.integrate(method, SCENE, y0, 0.0, h, steps, inertia, save_every=steps)
         return traj.ys.base.matrix[-1], traj.ys.fiber[-1], traj.stats["num_iterations"]
 
     return run
@@ -172,7 +170,7 @@ def _final(term, solver, to_state, split, adaptive, t_eval):
 def prkmk_final(solver, adaptive=False, t_eval=None):
     """`_final` for a PRKMKSolver on T*SO(3)."""
     return _final(
-        pk.PRKMKTerm(FIELD),
+        pk.PRKMKTerm(SCENE),
         solver,
         lambda q0, pi0: pk.BundleElement(pk.SO3(q0), pi0),
         lambda ys: (ys.base.matrix, ys.fiber),

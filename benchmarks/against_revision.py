@@ -56,7 +56,7 @@ def _method(lib, tableau, coordinates):
 
 def _runs(lib, tableau, coordinates, steps):
     # The field only reads y.fiber, so one function serves both revisions.
-    method, field = _method(lib, tableau, coordinates), C.FIELD
+    method, field = _method(lib, tableau, coordinates), C.SCENE
 
     def integrate(q0, pi0, inertia):
         y0 = lib.BundleElement(lib.SO3(q0), pi0)

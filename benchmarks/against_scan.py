@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import prkmk_jax as pk
+from prkmk_jax.scenes import FreeRigidBody
 from prkmk_jax.scenes import rigid_body as rb
 
 from _common import compile_fn, interleaved_times
@@ -54,9 +55,8 @@ def main(argv=None):
         ((1, 8), 20, 2) if args.quick else ((1, 64, 4096), 200, args.repeats)
     )
     h = 0.01
-    bundle = pk.Cotangent(pk.SO3)
-    field = rb.unreduced_rigid_body(bundle)
-    method = pk.PRKMK(bundle, pk.Exp(), pk.stormer_verlet, form="body")
+    field = FreeRigidBody()
+    method = field.method(pk.stormer_verlet)
     inertia = jnp.asarray(rb.PAPER_INERTIA)
     g0 = jnp.asarray(rb.random_rotation(rb.PAPER_SEED))
 

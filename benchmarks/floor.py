@@ -39,7 +39,6 @@ import statistics
 import diffrax
 import jax
 import jax.numpy as jnp
-import numpy as np
 import prkmk_jax as pk
 
 import _common as C
@@ -195,7 +194,7 @@ def _diffeqsolve_run(method, steps):
     def run(q0, pi0, inertia):
         y0 = pk.BundleElement(pk.SO3(q0), pi0)
         t0, t1, dt = _times(steps, q0.dtype)
-        sol = diffrax.diffeqsolve(pk.PRKMKTerm(C.FIELD), pk.PRKMKSolver(method), t0, t1, dt, y0, inertia, max_steps=steps)
+        sol = diffrax.diffeqsolve(pk.PRKMKTerm(C.SCENE), pk.PRKMKSolver(method), t0, t1, dt, y0, inertia, max_steps=steps)
         return sol.ys.base.matrix[-1], sol.ys.fiber[-1], jnp.array(-1)
 
     return run
@@ -221,7 +220,7 @@ METHODS = {
 def compare(method_name, batch, dtype, steps, rounds):
     """One row: interleaved timings of floor, integrate, diffeqsolve (and Tsit5)."""
     tableau, kernel = METHODS[method_name]
-    method = pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), tableau, form="body")
+    method = C.SCENE.method(tableau)
     qs, pis = C.initial_conditions(batch, seed=3)
     args = (jnp.asarray(qs, dtype), jnp.asarray(pis, dtype), jnp.asarray(C.INERTIA, dtype))
     columns = {

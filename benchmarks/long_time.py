@@ -56,7 +56,7 @@ def _prkmk_fixed(method, t_end):
         def run(q0, pi0, inertia):
             y0 = pk.BundleElement(pk.SO3(q0), pi0)
             ys = pk.integrate(
-                method, C.FIELD, y0, 0.0, h, n, inertia, save_every=every
+                method, C.SCENE, y0, 0.0, h, n, inertia, save_every=every
             ).ys
             return ys.base.matrix, ys.fiber
 
@@ -86,7 +86,7 @@ def _runs(quick, t_end):
     rtols = [1e-6] if quick else [1e-4, 1e-6, 1e-8, 1e-10]
     runs = []
     def body(tab):
-        return pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), tab, form="body")
+        return C.SCENE.method(tab)
 
     for name, tab in (
         ("SE", pk.symplectic_euler),

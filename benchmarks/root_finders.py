@@ -32,7 +32,7 @@ def compare(tableau, batch, steps, rounds):
     args = (jnp.asarray(qs), jnp.asarray(pis), jnp.asarray(C.INERTIA))
     solvers = {"fixed_point": None, "newton": optx.Newton(rtol=TOLERANCE, atol=TOLERANCE)}
     fns = {
-        name: jax.vmap(C.integrate_final(pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), tableau, form="body", root_finder=solver), steps, H), in_axes=(0, 0, None))
+        name: jax.vmap(C.integrate_final(C.SCENE.method(tableau, root_finder=solver), steps, H), in_axes=(0, 0, None))
         for name, solver in solvers.items()
     }
     compiled, compile_s, outputs = C.compile_all(fns, *args)

@@ -38,15 +38,13 @@ SCENES = {"fast spin": C.INERTIA, "unequal inertia": np.array([1.0, 0.1, 0.01])}
 
 
 def _prkmk(tableau, root_finder=None, coordinates=pk.Exp()):
-    method = pk.PRKMK(
-        pk.Cotangent(pk.SO3), coordinates, tableau, form="body", root_finder=root_finder
-    )
+    method = C.SCENE.method(tableau, coordinates, root_finder=root_finder)
 
     def make(n, every):
         def run(q0, pi0, inertia):
             y0 = pk.BundleElement(pk.SO3(q0), pi0)
             traj = pk.integrate(
-                method, C.FIELD, y0, 0.0, H, n, inertia, save_every=every, throw=False
+                method, C.SCENE, y0, 0.0, H, n, inertia, save_every=every, throw=False
             )
             return (
                 traj.ys.base.matrix,

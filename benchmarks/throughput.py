@@ -42,7 +42,7 @@ def _diffeqsolve(method, steps, adjoint=None):
     def run(q0, pi0, inertia):
         y0 = pk.BundleElement(pk.SO3(q0), pi0)
         sol = diffrax.diffeqsolve(
-            pk.PRKMKTerm(C.FIELD),
+            pk.PRKMKTerm(C.SCENE),
             pk.PRKMKSolver(method),
             0.0,
             steps * H,
@@ -77,7 +77,7 @@ def _tsit5(steps):
 
 def throughput(quick, repeats):
     batches = [8] if quick else [1, 64, 1024, 16384, 65536]
-    method64 = pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), pk.stormer_verlet, form="body")
+    method64 = C.SCENE.method(pk.stormer_verlet)
     rows = []
     for batch in batches:
         steps = 10 if quick else int(min(400, max(10, 2_000_000 // (batch * 10))))
@@ -131,7 +131,7 @@ def compile_vs_stages(quick):
     args = (jnp.asarray(qs), jnp.asarray(pis), jnp.asarray(C.INERTIA))
     tableaus = (("SE", pk.symplectic_euler), ("SV", pk.stormer_verlet), ("Lobatto4", pk.lobatto_iiia_iiib4))
     for name, tab in tableaus[1:2] if quick else tableaus:
-        method = pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), tab, form="body")
+        method = C.SCENE.method(tab)
         for path, make in (("scan", _scan), ("diffeqsolve", _diffeqsolve)):
             _, compile_s = C.compile_fn(
                 jax.vmap(make(method, 50), in_axes=(0, 0, None)), *args
@@ -150,7 +150,7 @@ def compile_vs_stages(quick):
 
 def gradient_cost(quick, repeats):
     batch, steps = (8, 20) if quick else (64, 200)
-    method = pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), pk.stormer_verlet, form="body")
+    method = C.SCENE.method(pk.stormer_verlet)
     qs, pis = C.initial_conditions(batch, seed=4)
     qs, pis = jnp.asarray(qs), jnp.asarray(pis)
     target = jnp.asarray(C.MOMENTUM)
