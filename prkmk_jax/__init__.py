@@ -1,6 +1,12 @@
 """Partitioned Runge–Kutta–Munthe-Kaas integrators on (co)tangent bundles of Lie groups."""
 
-from . import compositions as compositions, groups as groups, tableaus as tableaus
+from . import (
+    compositions as compositions,
+    diagnostics as diagnostics,
+    groups as groups,
+    scenes as scenes,
+    tableaus as tableaus,
+)
 from .bundles import (
     AbstractBundle as AbstractBundle,
     BundleElement as BundleElement,
@@ -45,8 +51,8 @@ from .tableaus import (
     symplectic_euler as symplectic_euler,
     symplectic_euler_adjoint as symplectic_euler_adjoint,
 )
-
-__version__ = "0.1.0"
 from .interpolation import OnGroupInterpolation as OnGroupInterpolation
 from .solver import PRKMKSolver as PRKMKSolver, PRKMKTerm as PRKMKTerm
 from .batch import batch_sharding as batch_sharding, shard_batch as shard_batch
+
+__version__ = "0.1.0"
