@@ -13,8 +13,9 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
-from ..bundles import AbstractBundle, AlgebraPair, BundleElement
+from ..bundles import AbstractBundle, AlgebraPair, BundleElement, Cotangent
 from ..coordinates import AbstractCoordinates, Exp
+from ..groups import SO3
 from ..step import PRKMK
 from ..tableaus import PartitionedTableau
 
@@ -62,3 +63,19 @@ def rotation_and_vector_embedding(y: BundleElement) -> Float[Array, "*batch 12"]
     """(Q row-major, v) for a state on SO(3) with a 3-vector fiber."""
     q = y.base.matrix
     return jnp.concatenate([q.reshape(*q.shape[:-2], 9), y.fiber], axis=-1)
+
+
+class AbstractBodyOnTStarSO3(AbstractScene):
+    """A scene on T*SO(3) (`Cotangent(SO3)`) in body form: state (Q, Π),
+    embedded as (Q row-major, Π)."""
+
+    @property
+    def bundle(self) -> AbstractBundle:
+        return Cotangent(SO3)
+
+    @property
+    def form(self) -> Literal["space", "body"]:
+        return "body"
+
+    def to_embedding(self, y: BundleElement) -> Float[Array, "*batch 12"]:
+        return rotation_and_vector_embedding(y)

@@ -10,16 +10,15 @@ did. On the left-trivialised cotangent bundle, body form, the generator is
 """
 
 from collections.abc import Callable
-from typing import Literal
 
 import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
 from .. import diagnostics
-from ..bundles import AbstractBundle, BundleElement, Cotangent
-from ..groups import SO3, hat
-from .base import AbstractScene, rotation_and_vector_embedding
+from ..bundles import BundleElement
+from ..groups import hat
+from .base import AbstractBodyOnTStarSO3
 
 
 class HarmonicTorque(eqx.Module):
@@ -44,20 +43,12 @@ class ForcedParameters(eqx.Module):
     """The torque law's parameters (differentiable, e.g. for fitting)."""
 
 
-class ForcedRigidBody(AbstractScene):
+class ForcedRigidBody(AbstractBodyOnTStarSO3):
     """The rigid body with a control torque on `Cotangent(SO3)`, body form;
     `args` is `ForcedParameters`. `torque_law(t, params)` returns the
     body-frame torque (default `harmonic_torque`)."""
 
     torque_law: Callable[[Array, PyTree], Float[Array, "3"]] = eqx.field(static=True, default=harmonic_torque)
-
-    @property
-    def bundle(self) -> AbstractBundle:
-        return Cotangent(SO3)
-
-    @property
-    def form(self) -> Literal["space", "body"]:
-        return "body"
 
     def __call__(self, t, y: BundleElement, args: ForcedParameters):
         return y.fiber / args.inertia, self.torque_law(t, args.torque)
@@ -73,9 +64,6 @@ class ForcedRigidBody(AbstractScene):
             "energy": diagnostics.energy(y.fiber, y.fiber / args.inertia),
             "orthogonality": diagnostics.orthogonality_defect(y.base.matrix),
         }
-
-    def to_embedding(self, y: BundleElement) -> Float[Array, "*batch 12"]:
-        return rotation_and_vector_embedding(y)
 
     def embedding_field(self, t, z, args: ForcedParameters):
         q, pi = z[:9].reshape(3, 3), z[9:]

@@ -17,16 +17,14 @@ On the left-trivialised cotangent bundle, body form, the product supplies
 fiber moves on its own (η ≠ 0).
 """
 
-from typing import Literal
-
 import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .. import diagnostics
-from ..bundles import AbstractBundle, BundleElement, Cotangent
-from ..groups import SO3, hat
-from .base import AbstractScene, rotation_and_vector_embedding
+from ..bundles import BundleElement
+from ..groups import hat
+from .base import AbstractBodyOnTStarSO3
 
 
 class TopParameters(eqx.Module):
@@ -44,16 +42,8 @@ def _vertical(q: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     return q[..., 2, :]
 
 
-class HeavyTop(AbstractScene):
+class HeavyTop(AbstractBodyOnTStarSO3):
     """The heavy top on `Cotangent(SO3)`, body form; `args` is `TopParameters`."""
-
-    @property
-    def bundle(self) -> AbstractBundle:
-        return Cotangent(SO3)
-
-    @property
-    def form(self) -> Literal["space", "body"]:
-        return "body"
 
     def __call__(self, t, y: BundleElement, args: TopParameters):
         omega = y.fiber / args.inertia
@@ -68,9 +58,6 @@ class HeavyTop(AbstractScene):
             "vertical momentum": jnp.sum(gamma * pi, axis=-1),
             "orthogonality": diagnostics.orthogonality_defect(q),
         }
-
-    def to_embedding(self, y: BundleElement) -> Float[Array, "*batch 12"]:
-        return rotation_and_vector_embedding(y)
 
     def embedding_field(self, t, z: Float[Array, "12"], args: TopParameters) -> Float[Array, "12"]:
         q, pi = z[:9].reshape(3, 3), z[9:]
