@@ -23,10 +23,11 @@ import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.integrate import solve_ivp
+
 import prkmk_jax as pk
 from prkmk_jax.scenes import FreeRigidBody
 from prkmk_jax.scenes import rigid_body as rb
-from scipy.integrate import solve_ivp
 
 INERTIA = np.asarray(rb.PAPER_INERTIA)
 MOMENTUM = np.asarray(rb.PAPER_MOMENTUM)
@@ -94,9 +95,7 @@ def geodesic_distance(q, q_ref):
     """Angle of the rotation q_refᵀq, 2·arcsin(‖q_refᵀq − I‖_F / √8) (accurate
     for small angles, unlike arccos of the trace)."""
     r = np.swapaxes(np.asarray(q_ref), -1, -2) @ np.asarray(q)
-    return 2 * np.arcsin(
-        np.minimum(np.linalg.norm(r - np.eye(3), axis=(-2, -1)) / np.sqrt(8), 1.0)
-    )
+    return 2 * np.arcsin(np.minimum(np.linalg.norm(r - np.eye(3), axis=(-2, -1)) / np.sqrt(8), 1.0))
 
 
 def invariants(q, pi, inertia=INERTIA):
@@ -106,9 +105,7 @@ def invariants(q, pi, inertia=INERTIA):
     norm = np.linalg.norm(pi, axis=-1)
     spatial = np.einsum("...ij,...j->...i", q, pi)
     ortho = np.linalg.norm(np.swapaxes(q, -1, -2) @ q - np.eye(3), axis=(-2, -1))
-    return dict(
-        energy=energy, momentum_norm=norm, spatial_momentum=spatial, orthogonality=ortho
-    )
+    return dict(energy=energy, momentum_norm=norm, spatial_momentum=spatial, orthogonality=ortho)
 
 
 # --- solvers -------------------------------------------------------------------------
@@ -139,14 +136,8 @@ def _final(term, solver, to_state, split, adaptive, t_eval):
     solver's state and back."""
 
     def run(q0, pi0, t1, dt, rtol, inertia):
-        controller = (
-            diffrax.PIDController(rtol=rtol, atol=rtol)
-            if adaptive
-            else diffrax.ConstantStepSize()
-        )
-        saveat = (
-            diffrax.SaveAt(t1=True) if t_eval is None else diffrax.SaveAt(ts=t_eval)
-        )
+        controller = diffrax.PIDController(rtol=rtol, atol=rtol) if adaptive else diffrax.ConstantStepSize()
+        saveat = diffrax.SaveAt(t1=True) if t_eval is None else diffrax.SaveAt(ts=t_eval)
         sol = diffrax.diffeqsolve(
             term,
             solver,
@@ -160,9 +151,7 @@ def _final(term, solver, to_state, split, adaptive, t_eval):
             max_steps=MAX_STEPS,
         )
         q, pi = split(sol.ys)
-        return ((q[-1], pi[-1]) if t_eval is None else (q, pi)), sol.stats[
-            "num_accepted_steps"
-        ]
+        return ((q[-1], pi[-1]) if t_eval is None else (q, pi)), sol.stats["num_accepted_steps"]
 
     return run
 
@@ -287,12 +276,8 @@ def cli(doc, argv, add_arguments=None):
     Without --out a full run writes to `benchmarks/results/` and a --quick
     run to a fresh scratch folder, so a smoke test never overwrites the
     committed results."""
-    parser = argparse.ArgumentParser(
-        description=doc, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument(
-        "--quick", action="store_true", help="tiny sizes, for a smoke test"
-    )
+    parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="tiny sizes, for a smoke test")
     parser.add_argument(
         "--out",
         default=None,

@@ -30,9 +30,9 @@ from pathlib import Path
 import diffrax
 import jax
 import jax.numpy as jnp
-import prkmk_jax as pk
 
 import _common as C
+import prkmk_jax as pk
 
 H = 0.01
 ROOT = Path(__file__).resolve().parents[1]
@@ -95,8 +95,16 @@ def compare(before, tableau, coordinates, path, batch, dtype, steps, rounds):
     per_step = {name: statistics.median(ts) / (batch * steps) * 1e9 for name, ts in times.items()}
     ratio = statistics.median(a / b for a, b in zip(times["now"], times["before"]))
     return dict(
-        tableau=tableau, coordinates=coordinates, path=path, dtype=jnp.dtype(dtype).name, batch=batch, steps=steps,
-        ns_per_traj_step=per_step, now_over_before=ratio, compile_s=compile_s, max_abs_difference=gap,
+        tableau=tableau,
+        coordinates=coordinates,
+        path=path,
+        dtype=jnp.dtype(dtype).name,
+        batch=batch,
+        steps=steps,
+        ns_per_traj_step=per_step,
+        now_over_before=ratio,
+        compile_s=compile_s,
+        max_abs_difference=gap,
     )
 
 
@@ -109,7 +117,12 @@ def main(argv=None):
     else:
         cases = [
             (tab, coords, path, batch, dtype)
-            for tab, coords in (("stormer_verlet", "exp"), ("stormer_verlet", "cayley"), ("lobatto_iiia_iiib4", "exp"), ("symplectic_euler", "exp"))
+            for tab, coords in (
+                ("stormer_verlet", "exp"),
+                ("stormer_verlet", "cayley"),
+                ("lobatto_iiia_iiib4", "exp"),
+                ("symplectic_euler", "exp"),
+            )
             for path in ("integrate", "diffeqsolve")
             for batch in (1, 64, 1024)
             for dtype in (jnp.float64,)
@@ -118,7 +131,10 @@ def main(argv=None):
         cases += [("stormer_verlet", "exp", "value_and_grad", b, jnp.float64) for b in (1, 64)]
         rounds, work = args.rounds, 200_000
     print(f"now: working tree; before: {args.rev} ({sha})")
-    print(f"{'tableau':20s} {'coords':6s} {'path':14s} {'dtype':7s} {'batch':>5s} {'now ns':>8s} {'bef. ns':>8s} {'ratio':>6s} {'cmp now':>7s} {'cmp bef':>7s} {'max diff':>8s}")
+    print(
+        f"{'tableau':20s} {'coords':6s} {'path':14s} {'dtype':7s} {'batch':>5s} {'now ns':>8s} "
+        f"{'bef. ns':>8s} {'ratio':>6s} {'cmp now':>7s} {'cmp bef':>7s} {'max diff':>8s}"
+    )
     rows = []
     for tab, coords, path, batch, dtype in cases:
         steps = int(max(20, min(400, work // batch)))

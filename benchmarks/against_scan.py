@@ -26,11 +26,11 @@ import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 import prkmk_jax as pk
+from _common import compile_fn, interleaved_times
 from prkmk_jax.scenes import FreeRigidBody
 from prkmk_jax.scenes import rigid_body as rb
-
-from _common import compile_fn, interleaved_times
 
 
 def _compile(fn, *args):
@@ -40,20 +40,14 @@ def _compile(fn, *args):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument(
-        "--quick", action="store_true", help="tiny sizes, for a smoke test"
-    )
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="tiny sizes, for a smoke test")
     parser.add_argument("--repeats", type=int, default=21)
     parser.add_argument("--out", help="folder for against_scan.json")
     args = parser.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
 
-    batches, steps, repeats = (
-        ((1, 8), 20, 2) if args.quick else ((1, 64, 4096), 200, args.repeats)
-    )
+    batches, steps, repeats = ((1, 8), 20, 2) if args.quick else ((1, 64, 4096), 200, args.repeats)
     h = 0.01
     field = FreeRigidBody()
     method = field.method(pk.stormer_verlet)
@@ -64,24 +58,18 @@ def main(argv=None):
         return pk.BundleElement(pk.SO3(g0), pi0)
 
     def scan_run(pi0):
-        return pk.integrate(
-            method, field, initial(pi0), 0.0, h, steps, inertia, save_every=steps
-        ).ys
+        return pk.integrate(method, field, initial(pi0), 0.0, h, steps, inertia, save_every=steps).ys
 
     def diffrax_run(pi0):
         term, solver = pk.PRKMKTerm(field), pk.PRKMKSolver(method)
-        return diffrax.diffeqsolve(
-            term, solver, 0.0, steps * h, h, initial(pi0), inertia, max_steps=steps
-        ).ys
+        return diffrax.diffeqsolve(term, solver, 0.0, steps * h, h, initial(pi0), inertia, max_steps=steps).ys
 
     def while_run(pi0):
         def body(carry):
             n, y = carry
             return n + 1, method.step(field, n * h, y, h, inertia)[0]
 
-        return jax.lax.while_loop(
-            lambda carry: carry[0] < steps, body, (0, initial(pi0))
-        )[1]
+        return jax.lax.while_loop(lambda carry: carry[0] < steps, body, (0, initial(pi0)))[1]
 
     rows = []
     header = (
@@ -95,20 +83,20 @@ def main(argv=None):
         "diffrax/while",
     )
     print(
-        f"{header[0]:>6s} {header[1]:>23s} {header[2]:>13s} {header[3]:>8s} {header[4]:>8s} {header[5]:>13s} {header[6]:>11s} {header[7]:>14s}"
+        f"{header[0]:>6s} {header[1]:>23s} {header[2]:>13s} {header[3]:>8s} "
+        f"{header[4]:>8s} {header[5]:>13s} {header[6]:>11s} {header[7]:>14s}"
     )
     for batch in batches:
-        pis = jnp.asarray(rb.PAPER_MOMENTUM) * (
-            1 + 0.1 * jnp.asarray(np.random.default_rng(0).normal(size=(batch, 1)))
-        )
-        compiled = [
-            _compile(jax.vmap(fn), pis) for fn in (scan_run, diffrax_run, while_run)
-        ]
+        pis = jnp.asarray(rb.PAPER_MOMENTUM) * (1 + 0.1 * jnp.asarray(np.random.default_rng(0).normal(size=(batch, 1))))
+        compiled = [_compile(jax.vmap(fn), pis) for fn in (scan_run, diffrax_run, while_run)]
         times = list(interleaved_times(dict(enumerate(c for c, _ in compiled)), pis, rounds=repeats).values())
-        per = lambda ts: statistics.median(ts) / (steps * batch) * 1e9
-        ratio = lambda a, b: statistics.median(
-            x / y for x, y in zip(times[a], times[b])
-        )
+
+        def per(ts):
+            return statistics.median(ts) / (steps * batch) * 1e9
+
+        def ratio(a, b):
+            return statistics.median(x / y for x, y in zip(times[a], times[b]))
+
         row = dict(
             batch=batch,
             steps=steps,

@@ -39,9 +39,9 @@ import statistics
 import diffrax
 import jax
 import jax.numpy as jnp
-import prkmk_jax as pk
 
 import _common as C
+import prkmk_jax as pk
 
 H = 0.01
 
@@ -109,9 +109,7 @@ def _iterate(update, start, tol, max_iterations=100):
         return new, relative_change(new, z), n + 1
 
     dtype = start[0].dtype
-    z, _, n = jax.lax.while_loop(
-        lambda s: (s[1] >= 1) & (s[2] < max_iterations), body, (start, jnp.asarray(jnp.inf, dtype), 0)
-    )
+    z, _, n = jax.lax.while_loop(lambda s: (s[1] >= 1) & (s[2] < max_iterations), body, (start, jnp.asarray(jnp.inf, dtype), 0))
     return z, n
 
 

@@ -24,11 +24,11 @@ import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
-import prkmk_jax as pk
-from prkmk_jax.scenes import HeavyTop, TopParameters, random_rotation
 from scipy.integrate import solve_ivp
 
 import _common as C
+import prkmk_jax as pk
+from prkmk_jax.scenes import HeavyTop, TopParameters, random_rotation
 
 jax.config.update("jax_enable_x64", True)  # before the module's arrays are made
 TOP = HeavyTop()
@@ -62,8 +62,16 @@ def _prkmk_run(method, h, t_end, every):
 def _diffrax_run(solver, rtol, t_end, ts):
     def run(z0, args):
         sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(TOP.embedding_field), solver, 0.0, t_end, None, z0, args,
-            stepsize_controller=diffrax.PIDController(rtol=rtol, atol=rtol), saveat=diffrax.SaveAt(ts=ts), max_steps=None,
+            diffrax.ODETerm(TOP.embedding_field),
+            solver,
+            0.0,
+            t_end,
+            None,
+            z0,
+            args,
+            stepsize_controller=diffrax.PIDController(rtol=rtol, atol=rtol),
+            saveat=diffrax.SaveAt(ts=ts),
+            max_steps=None,
         )
         return sol.ys
 
@@ -110,7 +118,9 @@ def long_time(quick):
 def _reference(t_end, rtol=1e-13):
     rhs = jax.jit(TOP.embedding_field)
     start = time.perf_counter()
-    sol = solve_ivp(lambda t, z: np.asarray(rhs(t, jnp.asarray(z), ARGS)), (0.0, t_end), np.asarray(Z0), method="DOP853", rtol=rtol, atol=rtol)
+    sol = solve_ivp(
+        lambda t, z: np.asarray(rhs(t, jnp.asarray(z), ARGS)), (0.0, t_end), np.asarray(Z0), method="DOP853", rtol=rtol, atol=rtol
+    )
     return sol.y[:, -1], time.perf_counter() - start, sol.t.size - 1
 
 
@@ -144,7 +154,8 @@ def markdown(result):
     lines = ["| method | h / rtol | wall s | energy | Γ·Π | ‖QᵀQ − I‖ |", "|---|---:|---:|---:|---:|---:|"]
     for r in result["long_time"]:
         lines.append(
-            f"| {r['method']} | {r['parameter']:g} | {r['wall_s']:.3f} | {r['energy']:.1e} | {r['vertical_momentum']:.1e} | {r['orthogonality']:.1e} |"
+            f"| {r['method']} | {r['parameter']:g} | {r['wall_s']:.3f} | {r['energy']:.1e} "
+            f"| {r['vertical_momentum']:.1e} | {r['orthogonality']:.1e} |"
         )
     lines += ["", "| method | n / rtol | wall ms | error at T = 10 |", "|---|---:|---:|---:|"]
     for r in result["work_precision"]:

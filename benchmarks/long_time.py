@@ -22,9 +22,9 @@ import json
 import diffrax
 import jax.numpy as jnp
 import numpy as np
-import prkmk_jax as pk
 
 import _common as C
+import prkmk_jax as pk
 
 KEYS = ("energy", "momentum_norm", "spatial_momentum", "orthogonality")
 
@@ -34,17 +34,8 @@ def drifts(q, pi, inertia=C.INERTIA):
     scale = np.linalg.norm(pi[0])
     return dict(
         energy=float(np.max(np.abs(inv["energy"] / inv["energy"][0] - 1))),
-        momentum_norm=float(
-            np.max(np.abs(inv["momentum_norm"] - inv["momentum_norm"][0])) / scale
-        ),
-        spatial_momentum=float(
-            np.max(
-                np.linalg.norm(
-                    inv["spatial_momentum"] - inv["spatial_momentum"][0], axis=-1
-                )
-            )
-            / scale
-        ),
+        momentum_norm=float(np.max(np.abs(inv["momentum_norm"] - inv["momentum_norm"][0])) / scale),
+        spatial_momentum=float(np.max(np.linalg.norm(inv["spatial_momentum"] - inv["spatial_momentum"][0], axis=-1)) / scale),
         orthogonality=float(np.max(inv["orthogonality"])),
     )
 
@@ -55,9 +46,7 @@ def _prkmk_fixed(method, t_end):
 
         def run(q0, pi0, inertia):
             y0 = pk.BundleElement(pk.SO3(q0), pi0)
-            ys = pk.integrate(
-                method, C.SCENE, y0, 0.0, h, n, inertia, save_every=every
-            ).ys
+            ys = pk.integrate(method, C.SCENE, y0, 0.0, h, n, inertia, save_every=every).ys
             return ys.base.matrix, ys.fiber
 
         return run
@@ -85,6 +74,7 @@ def _runs(quick, t_end):
     fixed_h = [0.05] if quick else [0.1, 0.05, 0.02]
     rtols = [1e-6] if quick else [1e-4, 1e-6, 1e-8, 1e-10]
     runs = []
+
     def body(tab):
         return C.SCENE.method(tab)
 
@@ -95,10 +85,7 @@ def _runs(quick, t_end):
     ):
         if quick and name != "SV":
             continue
-        runs += [
-            (f"PRKMK {name} exp", "prkmk", "h", h, _prkmk_fixed(body(tab), t_end))
-            for h in fixed_h
-        ]
+        runs += [(f"PRKMK {name} exp", "prkmk", "h", h, _prkmk_fixed(body(tab), t_end)) for h in fixed_h]
     # Order 6 and 8 (a step of h is 9 or 17 Störmer–Verlet steps for the
     # compositions, so their steps are longer).
     high_h = [0.25] if quick else [0.5, 0.2, 0.1]
@@ -163,9 +150,7 @@ def matched_cost(rows):
         entry = dict(method=r["method"], parameter=r["parameter"], wall_s=r["wall_s"])
         for key in ("energy", "momentum_norm", "spatial_momentum"):
             best = min((p[key] for p in cheaper), default=float("nan"))
-            entry[f"{key}_ratio"] = (
-                best / max(r[key], 1e-300) if cheaper else float("nan")
-            )
+            entry[f"{key}_ratio"] = best / max(r[key], 1e-300) if cheaper else float("nan")
         out.append(entry)
     return out
 
@@ -190,9 +175,7 @@ def plot(rows, path, t_end):
     for ax in axes[1]:
         ax.set_xlabel("wall time after compilation (s)")
     axes[0, 1].legend(fontsize=7)
-    fig.suptitle(
-        f"Free rigid body, invariant drift over T = {t_end:g} against cost (values below 1e-17 drawn at 1e-17)"
-    )
+    fig.suptitle(f"Free rigid body, invariant drift over T = {t_end:g} against cost (values below 1e-17 drawn at 1e-17)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -226,8 +209,7 @@ def main(argv=None):
         row.update(drifts(q, pi) if ok else {k: float("nan") for k in KEYS})
         rows.append(row)
         print(
-            f"{name:30s} {kind}={param:<7.0e} wall={wall:8.3f}s  "
-            + "  ".join(f"{k}={row[k]:8.1e}" for k in KEYS),
+            f"{name:30s} {kind}={param:<7.0e} wall={wall:8.3f}s  " + "  ".join(f"{k}={row[k]:8.1e}" for k in KEYS),
             flush=True,
         )
     plot(rows, out / "long_time.png", t_end)
@@ -239,7 +221,8 @@ def main(argv=None):
     print("\nbest diffrax error at no more wall time / PRKMK error:")
     for m in matched:
         print(
-            f"  {m['method']:30s} {m['parameter']:<7.0e} wall={m['wall_s']:8.3f}s  energy ×{m['energy_ratio']:.1e}  |Π| ×{m['momentum_norm_ratio']:.1e}  QΠ ×{m['spatial_momentum_ratio']:.1e}"
+            f"  {m['method']:30s} {m['parameter']:<7.0e} wall={m['wall_s']:8.3f}s  energy ×{m['energy_ratio']:.1e} "
+            f" |Π| ×{m['momentum_norm_ratio']:.1e}  QΠ ×{m['spatial_momentum_ratio']:.1e}"
         )
     with open(out / "long_time.json", "w") as f:
         json.dump(

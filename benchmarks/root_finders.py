@@ -19,9 +19,9 @@ import statistics
 import jax
 import jax.numpy as jnp
 import optimistix as optx
-import prkmk_jax as pk
 
 import _common as C
+import prkmk_jax as pk
 
 H = 0.01
 TOLERANCE = 1e-12
@@ -42,8 +42,14 @@ def compare(tableau, batch, steps, rounds):
     ns = {name: statistics.median(t) / (batch * steps) * 1e9 for name, t in times.items()}
     iterations = {name: float(jnp.mean(out[2])) / steps for name, out in outputs.items()}
     return dict(
-        tableau=tableau.name, batch=batch, steps=steps, ns_per_traj_step=ns, iterations_per_step=iterations,
-        newton_over_fixed_point=ns["newton"] / ns["fixed_point"], compile_s=compile_s, max_abs_difference=difference,
+        tableau=tableau.name,
+        batch=batch,
+        steps=steps,
+        ns_per_traj_step=ns,
+        iterations_per_step=iterations,
+        newton_over_fixed_point=ns["newton"] / ns["fixed_point"],
+        compile_s=compile_s,
+        max_abs_difference=difference,
     )
 
 

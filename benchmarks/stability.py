@@ -29,9 +29,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-import prkmk_jax as pk
 
 import _common as C
+import prkmk_jax as pk
 
 H = 0.1
 SCENES = {"fast spin": C.INERTIA, "unequal inertia": np.array([1.0, 0.1, 0.01])}
@@ -43,9 +43,7 @@ def _prkmk(tableau, root_finder=None, coordinates=pk.Exp()):
     def make(n, every):
         def run(q0, pi0, inertia):
             y0 = pk.BundleElement(pk.SO3(q0), pi0)
-            traj = pk.integrate(
-                method, C.SCENE, y0, 0.0, H, n, inertia, save_every=every, throw=False
-            )
+            traj = pk.integrate(method, C.SCENE, y0, 0.0, H, n, inertia, save_every=every, throw=False)
             return (
                 traj.ys.base.matrix,
                 traj.ys.fiber,
@@ -110,11 +108,7 @@ def classify(q, pi, converged, inertia):
             out.append("nonfinite")
             continue
         energy = 0.5 * np.sum(pi[k] ** 2 / inertia, axis=-1)
-        out.append(
-            "bounded"
-            if np.max(np.abs(energy / energy[0] - 1)) < 0.1
-            else "energy drift"
-        )
+        out.append("bounded" if np.max(np.abs(energy / energy[0] - 1)) < 0.1 else "energy drift")
     return out
 
 
@@ -122,13 +116,8 @@ def main(argv=None):
     args, out = C.cli(__doc__, argv)
     t_end = 20.0 if args.quick else 1000.0
     n, every = int(round(t_end / H)), int(round(1.0 / H))
-    hw_targets = np.geomspace(
-        0.05, 20.0, 6 if args.quick else 25
-    )  # h·|Ω₀| values swept
-    methods = {
-        k: METHODS[k]
-        for k in (["PRKMK SV", "diffrax Tsit5"] if args.quick else METHODS)
-    }
+    hw_targets = np.geomspace(0.05, 20.0, 6 if args.quick else 25)  # h·|Ω₀| values swept
+    methods = {k: METHODS[k] for k in (["PRKMK SV", "diffrax Tsit5"] if args.quick else METHODS)}
     q0 = jnp.asarray(C.initial_conditions(None)[0])
     direction = C.MOMENTUM / np.linalg.norm(C.MOMENTUM)
     rows, thresholds = [], {}
@@ -140,9 +129,7 @@ def main(argv=None):
         for name, make in methods.items():
             fn = jax.vmap(make(n, every), in_axes=(0, 0, None))
             compiled, compile_s = C.compile_fn(fn, qs, pis, jnp.asarray(inertia))
-            q, pi, converged = (
-                np.asarray(x) for x in compiled(qs, pis, jnp.asarray(inertia))
-            )
+            q, pi, converged = (np.asarray(x) for x in compiled(qs, pis, jnp.asarray(inertia)))
             status = classify(q, pi, converged, inertia)
             bounded = [hw for hw, st in zip(hw_targets, status) if st == "bounded"]
             first_fail = next(
@@ -168,7 +155,8 @@ def main(argv=None):
                     )
                 )
             print(
-                f"{scene:16s} {name:20s} stable to h|Ω₀| = {thresholds[(scene, name)]['threshold']:6.3f}; first failure at {first_fail[0]:6.3f} ({first_fail[1]})",
+                f"{scene:16s} {name:20s} stable to h|Ω₀| = {thresholds[(scene, name)]['threshold']:6.3f}; "
+                f"first failure at {first_fail[0]:6.3f} ({first_fail[1]})",
                 flush=True,
             )
     with open(out / "stability.csv", "w", newline="") as f:
@@ -181,9 +169,7 @@ def main(argv=None):
                 machine=C.machine(),
                 h=H,
                 t_end=t_end,
-                thresholds=[
-                    dict(scene=s, method=m, **v) for (s, m), v in thresholds.items()
-                ],
+                thresholds=[dict(scene=s, method=m, **v) for (s, m), v in thresholds.items()],
             ),
             f,
             indent=1,
@@ -202,17 +188,13 @@ def plot(thresholds, grid, path, t_end):
     fig, ax = plt.subplots(figsize=(11, 5))
     width = 0.8 / len(scenes)
     for k, scene in enumerate(scenes):
-        vals = [
-            thresholds.get((scene, m), {}).get("threshold", np.nan) for m in methods
-        ]
+        vals = [thresholds.get((scene, m), {}).get("threshold", np.nan) for m in methods]
         ax.bar(np.arange(len(methods)) + k * width, vals, width, label=scene)
     ax.set_yscale("log")
     ax.set_xticks(np.arange(len(methods)) + width * (len(scenes) - 1) / 2)
     ax.set_xticklabels(methods, rotation=30, ha="right")
     ax.set_ylabel("largest stable h·|Ω₀| (dimensionless)")
-    ax.set_title(
-        f"Bounded over T = {t_end:g} (finite, implicit stages converged, energy error < 10 %); grid {grid[0]:.2g}…{grid[-1]:.2g}"
-    )
+    ax.set_title(f"Bounded over T = {t_end:g} (finite, implicit stages converged, energy error < 10 %); grid {grid[0]:.2g}…{grid[-1]:.2g}")
     ax.legend()
     ax.grid(True, axis="y", which="both", alpha=0.3)
     fig.tight_layout()

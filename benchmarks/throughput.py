@@ -21,9 +21,9 @@ import json
 import diffrax
 import jax
 import jax.numpy as jnp
-import prkmk_jax as pk
 
 import _common as C
+import prkmk_jax as pk
 
 H = 0.01
 
@@ -97,16 +97,10 @@ def throughput(quick, repeats):
                 jnp.asarray(pis, dtype),
                 jnp.asarray(C.INERTIA, dtype),
             )
-            compiled, compile_s = C.compile_fn(
-                jax.vmap(make(), in_axes=(0, 0, None)), *args
-            )
+            compiled, compile_s = C.compile_fn(jax.vmap(make(), in_axes=(0, 0, None)), *args)
             wall, (_, iters) = C.median_time(compiled, *args, repeats=repeats)
             rate = batch * steps / wall
-            iters_per_step = (
-                float(jnp.mean(iters)) / steps
-                if jnp.all(jnp.isfinite(iters))
-                else float("nan")
-            )
+            iters_per_step = float(jnp.mean(iters)) / steps if jnp.all(jnp.isfinite(iters)) else float("nan")
             rows.append(
                 dict(
                     batch=batch,
@@ -119,7 +113,8 @@ def throughput(quick, repeats):
                 )
             )
             print(
-                f"batch {batch:6d} {name:28s} steps={steps:4d} wall={wall:8.4f}s  {rate:10.3e} traj-steps/s  compile {compile_s:5.2f}s  iterations/step {iters_per_step:.1f}",
+                f"batch {batch:6d} {name:28s} steps={steps:4d} wall={wall:8.4f}s  {rate:10.3e} "
+                f"traj-steps/s  compile {compile_s:5.2f}s  iterations/step {iters_per_step:.1f}",
                 flush=True,
             )
     return rows
@@ -133,14 +128,8 @@ def compile_vs_stages(quick):
     for name, tab in tableaus[1:2] if quick else tableaus:
         method = C.SCENE.method(tab)
         for path, make in (("scan", _scan), ("diffeqsolve", _diffeqsolve)):
-            _, compile_s = C.compile_fn(
-                jax.vmap(make(method, 50), in_axes=(0, 0, None)), *args
-            )
-            rows.append(
-                dict(
-                    tableau=name, stages=tab.num_stages, path=path, compile_s=compile_s
-                )
-            )
+            _, compile_s = C.compile_fn(jax.vmap(make(method, 50), in_axes=(0, 0, None)), *args)
+            rows.append(dict(tableau=name, stages=tab.num_stages, path=path, compile_s=compile_s))
             print(
                 f"{name:9s} stages={tab.num_stages}  {path:12s} compile {compile_s:5.2f}s",
                 flush=True,
@@ -187,7 +176,8 @@ def gradient_cost(quick, repeats):
             )
         )
         print(
-            f"{path:16s} forward {fwd_t:8.4f}s  forward+backward {bwd_t:8.4f}s  ratio {bwd_t / fwd_t:5.2f}  compile {fwd_c:5.2f}s / {bwd_c:5.2f}s",
+            f"{path:16s} forward {fwd_t:8.4f}s  forward+backward {bwd_t:8.4f}s  "
+            f"ratio {bwd_t / fwd_t:5.2f}  compile {fwd_c:5.2f}s / {bwd_c:5.2f}s",
             flush=True,
         )
     return rows

@@ -29,9 +29,9 @@ import time
 import diffrax
 import jax.numpy as jnp
 import numpy as np
-import prkmk_jax as pk
 
 import _common as C
+import prkmk_jax as pk
 
 T_END = 10.0
 TARGETS = (1e-8, 1e-10)
@@ -69,9 +69,7 @@ def _methods(quick):
         (
             "PRKMK Lobatto4 exp adaptive",
             "prkmk",
-            C.prkmk_final(
-                C.prkmk_solver(pk.lobatto_iiia_iiib4, adaptive=True), adaptive=True
-            ),
+            C.prkmk_final(C.prkmk_solver(pk.lobatto_iiia_iiib4, adaptive=True), adaptive=True),
             True,
         )
     )
@@ -81,12 +79,8 @@ def _methods(quick):
         ("Dopri5", diffrax.Dopri5()),
         ("Dopri8", diffrax.Dopri8()),
     ):
-        peers.append(
-            (f"diffrax {name} adaptive", "diffrax", C.diffrax_final(solver, True), True)
-        )
-        peers.append(
-            (f"diffrax {name} fixed", "diffrax", C.diffrax_final(solver, False), False)
-        )
+        peers.append((f"diffrax {name} adaptive", "diffrax", C.diffrax_final(solver, True), True))
+        peers.append((f"diffrax {name} fixed", "diffrax", C.diffrax_final(solver, False), False))
     if quick:
         keep = ("PRKMK SV exp", "PRKMK SV∘KahanLi6 exp", "PRKMK Lobatto4 exp adaptive")
         return [m for m in prkmk if m[0] in keep] + peers[:2]
@@ -98,16 +92,8 @@ def _sweep(name, adaptive, quick, batch):
         return [1e-4] if adaptive else [20]
     if adaptive:
         if name.startswith("PRKMK"):
-            return (
-                [1e-4, 1e-6, 1e-8, 1e-10]
-                if batch
-                else [1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10]
-            )
-        return (
-            [1e-3, 1e-5, 1e-7, 1e-9, 1e-11]
-            if batch
-            else [10.0**-k for k in range(3, 13)]
-        )
+            return [1e-4, 1e-6, 1e-8, 1e-10] if batch else [1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10]
+        return [1e-3, 1e-5, 1e-7, 1e-9, 1e-11] if batch else [10.0**-k for k in range(3, 13)]
     if name.startswith("PRKMK SE"):
         return [50, 100, 200, 400] if batch else [50, 100, 200, 400, 800, 1600, 3200]
     if name.startswith(("PRKMK SV∘", "PRKMK Lobatto6", "diffrax Dopri8")):
@@ -163,17 +149,11 @@ def run_regime(regime, quick, repeats):
             try:
                 wall, ((q, pi), steps) = C.median_time(compiled, *args, repeats=repeats)
                 ok = bool(np.all(np.isfinite(np.asarray(pi))))
-            except (
-                Exception
-            ) as err:  # an implicit stage that does not converge raises (throw=True)
+            except Exception as err:  # an implicit stage that does not converge raises (throw=True)
                 print(f"  {name} at {value}: failed ({type(err).__name__})")
                 wall, q, pi, steps, ok = float("nan"), None, None, 0, False
             if ok:
-                qc, pic = (
-                    (q, pi)
-                    if batch is None
-                    else (np.asarray(q)[:n_check], np.asarray(pi)[:n_check])
-                )
+                qc, pic = (q, pi) if batch is None else (np.asarray(q)[:n_check], np.asarray(pi)[:n_check])
                 att, mom = _errors(qc, pic, q_ref, pi_ref)
             else:
                 att = mom = float("nan")
@@ -192,7 +172,8 @@ def run_regime(regime, quick, repeats):
             )
             rows.append(row)
             print(
-                f"{regime:6s} {name:30s} {'rtol' if adaptive else 'n':>4s}={value:<8.0e} steps={row['steps']:6d} wall={wall:9.4f}s  att={att:8.1e}  mom={mom:8.1e}",
+                f"{regime:6s} {name:30s} {'rtol' if adaptive else 'n':>4s}={value:<8.0e} "
+                f"steps={row['steps']:6d} wall={wall:9.4f}s  att={att:8.1e}  mom={mom:8.1e}",
                 flush=True,
             )
     if batch is None:
@@ -237,7 +218,8 @@ def _scipy_rows(q0, pi0, t_end, q_ref, pi_ref, quick, repeats):
             )
             rows.append(row)
             print(
-                f"single {row['method']:30s} rtol={rtol:<8.0e} steps={row['steps']:6d} wall={row['wall_s']:9.4f}s  att={att:8.1e}  mom={mom:8.1e}",
+                f"single {row['method']:30s} rtol={rtol:<8.0e} steps={row['steps']:6d} "
+                f"wall={row['wall_s']:9.4f}s  att={att:8.1e}  mom={mom:8.1e}",
                 flush=True,
             )
     return rows
@@ -247,11 +229,7 @@ def fastest_at(rows, regime, target):
     """Per method, the fastest measured run whose errors are both ≤ target."""
     best = {}
     for r in rows:
-        if (
-            r["regime"] != regime
-            or not r["ok"]
-            or max(r["attitude_error"], r["momentum_error"]) > target
-        ):
+        if r["regime"] != regime or not r["ok"] or max(r["attitude_error"], r["momentum_error"]) > target:
             continue
         if r["method"] not in best or r["wall_s"] < best[r["method"]]["wall_s"]:
             best[r["method"]] = r
@@ -284,9 +262,7 @@ def plot(rows, regime, path):
 
 
 def main(argv=None):
-    args, out = C.cli(
-        __doc__, argv, lambda p: p.add_argument("--regimes", default="single,batch")
-    )
+    args, out = C.cli(__doc__, argv, lambda p: p.add_argument("--regimes", default="single,batch"))
     rows = []
     for regime in args.regimes.split(","):
         rows += run_regime(
@@ -309,9 +285,7 @@ def main(argv=None):
             }
             print(f"\n{regime}: fastest run with attitude and momentum error ≤ {target:.0e}")
             for m, r in sorted(best.items(), key=lambda kv: kv[1]["wall_s"]):
-                print(
-                    f"  {m:30s} {r['wall_s']:9.4f} s  ({'rtol' if r['adaptive'] else 'n'} = {r['parameter']:.0e}, {r['steps']} steps)"
-                )
+                print(f"  {m:30s} {r['wall_s']:9.4f} s  ({'rtol' if r['adaptive'] else 'n'} = {r['parameter']:.0e}, {r['steps']} steps)")
             structure = [r for m, r in best.items() if m.startswith("PRKMK")]
             dopri8 = [r for m, r in best.items() if m.startswith("diffrax Dopri8")]
             if structure and dopri8:

@@ -2,57 +2,123 @@
 
 from . import (
     compositions as compositions,
+)
+from . import (
     diagnostics as diagnostics,
+)
+from . import (
     groups as groups,
+)
+from . import (
     scenes as scenes,
+)
+from . import (
     tableaus as tableaus,
 )
+from .batch import batch_sharding as batch_sharding
+from .batch import shard_batch as shard_batch
 from .bundles import (
     AbstractBundle as AbstractBundle,
+)
+from .bundles import (
     BundleElement as BundleElement,
+)
+from .bundles import (
     Cartesian as Cartesian,
+)
+from .bundles import (
     Cotangent as Cotangent,
+)
+from .bundles import (
     DirectProduct as DirectProduct,
+)
+from .bundles import (
     Semidirect as Semidirect,
 )
 from .composed import (
     Adjoint as Adjoint,
+)
+from .composed import (
     Composition as Composition,
+)
+from .composed import (
     Symmetrized as Symmetrized,
+)
+from .composed import (
     symmetry_defect as symmetry_defect,
 )
 from .compositions import (
     CompositionCoefficients as CompositionCoefficients,
+)
+from .compositions import (
     kahan_li_6 as kahan_li_6,
+)
+from .compositions import (
     kahan_li_8 as kahan_li_8,
+)
+from .compositions import (
     mclachlan_8 as mclachlan_8,
+)
+from .compositions import (
     suzuki_5 as suzuki_5,
+)
+from .compositions import (
     suzuki_fractal as suzuki_fractal,
+)
+from .compositions import (
     triple_jump as triple_jump,
+)
+from .compositions import (
     yoshida_triple_jump as yoshida_triple_jump,
 )
-from .coordinates import AbstractCoordinates as AbstractCoordinates, Cayley as Cayley, Exp as Exp
-from .groups import SO3 as SO3, SOn as SOn, VectorSpace as VectorSpace, hat as hat, vee as vee
-from .method import AbstractMethod as AbstractMethod
+from .coordinates import AbstractCoordinates as AbstractCoordinates
+from .coordinates import Cayley as Cayley
+from .coordinates import Exp as Exp
+from .groups import SO3 as SO3
+from .groups import SOn as SOn
+from .groups import VectorSpace as VectorSpace
+from .groups import hat as hat
+from .groups import vee as vee
 from .integrate import (
     Continuation as Continuation,
+)
+from .integrate import (
     Trajectory as Trajectory,
+)
+from .integrate import (
     integrate as integrate,
+)
+from .integrate import (
     resume as resume,
 )
-from .series import dexp_inv_series as dexp_inv_series, dexp_series as dexp_series
-from .step import PRKMK as PRKMK, RESULTS as RESULTS
+from .interpolation import OnGroupInterpolation as OnGroupInterpolation
+from .method import AbstractMethod as AbstractMethod
+from .series import dexp_inv_series as dexp_inv_series
+from .series import dexp_series as dexp_series
+from .solver import PRKMKSolver as PRKMKSolver
+from .solver import PRKMKTerm as PRKMKTerm
+from .step import PRKMK as PRKMK
+from .step import RESULTS as RESULTS
 from .tableaus import (
     PartitionedTableau as PartitionedTableau,
+)
+from .tableaus import (
     lobatto_iiia_iiib4 as lobatto_iiia_iiib4,
+)
+from .tableaus import (
     lobatto_iiia_iiib6 as lobatto_iiia_iiib6,
+)
+from .tableaus import (
     stormer_verlet as stormer_verlet,
+)
+from .tableaus import (
     stormer_verlet_adjoint as stormer_verlet_adjoint,
+)
+from .tableaus import (
     symplectic_euler as symplectic_euler,
+)
+from .tableaus import (
     symplectic_euler_adjoint as symplectic_euler_adjoint,
 )
-from .interpolation import OnGroupInterpolation as OnGroupInterpolation
-from .solver import PRKMKSolver as PRKMKSolver, PRKMKTerm as PRKMKTerm
-from .batch import batch_sharding as batch_sharding, shard_batch as shard_batch
 
 __version__ = "0.1.0"

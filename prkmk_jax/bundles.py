@@ -105,9 +105,7 @@ class AbstractBundle(eqx.Module):
             raise ValueError(f"fiber shape {fiber_shape} does not match the base algebra shape {zeros.shape}.")
         fiber_dtype = jax.tree.leaves(y.fiber)[0].dtype if self.fiber_is_group else jnp.result_type(y.fiber)
         if fiber_dtype != zeros.dtype:
-            raise TypeError(
-                f"the base is {zeros.dtype} but the fiber is {fiber_dtype}; give both the same dtype (the run's precision)."
-            )
+            raise TypeError(f"the base is {zeros.dtype} but the fiber is {fiber_dtype}; give both the same dtype (the run's precision).")
         base = y.base.check()
         if self.fiber_is_group:
             fiber = y.fiber.check()

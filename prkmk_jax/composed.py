@@ -90,11 +90,11 @@ class Adjoint(AbstractMadeOfSteps):
             return zero if out is None else out
 
         def increment(stages):
-            first, second = [k for k, _ in stages], [l for _, l in stages]
+            first, second = [k_i for k_i, _ in stages], [l_i for _, l_i in stages]
             return combination(dt, tab.b_first, first, zeros[0]), combination(dt, tab.b_second, second, zeros[1])
 
         def all_slopes(stages):
-            first, second = [k for k, _ in stages], [l for _, l in stages]
+            first, second = [k_i for k_i, _ in stages], [l_i for _, l_i in stages]
             y_end = method.apply_increment(increment(stages), y)
             out = []
             for i in range(tab.num_stages):

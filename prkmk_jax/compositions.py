@@ -67,7 +67,10 @@ def triple_jump(base_order: int = 2) -> CompositionCoefficients:
     Suzuki 1990; Creutz & Gocksch 1989)."""
     g = 1.0 / (2.0 - 2.0 ** (1.0 / (base_order + 1)))
     return CompositionCoefficients(
-        f"triple jump (order {base_order + 2})", (g, 1.0 - 2.0 * g, g), base_order + 2, base_order,
+        f"triple jump (order {base_order + 2})",
+        (g, 1.0 - 2.0 * g, g),
+        base_order + 2,
+        base_order,
         "H. Yoshida, Construction of higher order symplectic integrators, Phys. Lett. A 150 (1990) 262-268.",
     )
 
@@ -78,7 +81,10 @@ def suzuki_fractal(base_order: int = 2) -> CompositionCoefficients:
     constants) than the triple jump (Suzuki 1990, Phys. Lett. A 146, 319–323)."""
     g = 1.0 / (4.0 - 4.0 ** (1.0 / (base_order + 1)))
     return CompositionCoefficients(
-        f"Suzuki's fractal (order {base_order + 2})", (g, g, 1.0 - 4.0 * g, g, g), base_order + 2, base_order,
+        f"Suzuki's fractal (order {base_order + 2})",
+        (g, g, 1.0 - 4.0 * g, g, g),
+        base_order + 2,
+        base_order,
         "M. Suzuki, Fractal decomposition of exponential operators, Phys. Lett. A 146 (1990) 319-323.",
     )
 
@@ -95,11 +101,17 @@ suzuki_5 = suzuki_fractal(2)
 
 kahan_li_6 = CompositionCoefficients(
     "Kahan-Li s9odr6a (order 6)",
-    _palindrome([
-        0.39216144400731413927925056, 0.33259913678935943859974864, -0.70624617255763935980996482,
-        0.08221359629355080023149045, 0.79854399093482996339895035,
-    ]),
-    order=6, base_order=2,
+    _palindrome(
+        [
+            0.39216144400731413927925056,
+            0.33259913678935943859974864,
+            -0.70624617255763935980996482,
+            0.08221359629355080023149045,
+            0.79854399093482996339895035,
+        ]
+    ),
+    order=6,
+    base_order=2,
     source="W. Kahan, R.-C. Li, Composition constants for raising the orders of unconventional schemes for "
     "ordinary differential equations, Math. Comp. 66 (1997) 1089-1099; as printed in Hairer, Lubich & Wanner, "
     "Geometric Numerical Integration (2006), §V.3.2.",
@@ -108,12 +120,20 @@ kahan_li_6 = CompositionCoefficients(
 
 mclachlan_8 = CompositionCoefficients(
     "McLachlan s15odr8 (order 8)",
-    _palindrome([
-        0.74167036435061295344822780, -0.40910082580003159399730010, 0.19075471029623837995387626,
-        -0.57386247111608226665638773, 0.29906418130365592384446354, 0.33462491824529818378495798,
-        0.31529309239676659663205666, -0.79688793935291635401978884,
-    ]),
-    order=8, base_order=2,
+    _palindrome(
+        [
+            0.74167036435061295344822780,
+            -0.40910082580003159399730010,
+            0.19075471029623837995387626,
+            -0.57386247111608226665638773,
+            0.29906418130365592384446354,
+            0.33462491824529818378495798,
+            0.31529309239676659663205666,
+            -0.79688793935291635401978884,
+        ]
+    ),
+    order=8,
+    base_order=2,
     source="R. I. McLachlan, On the numerical integration of ordinary differential equations by symmetric "
     "composition methods, SIAM J. Sci. Comput. 16 (1995) 151-168; as printed in Hairer, Lubich & Wanner (2006), "
     "§V.3.2.",
@@ -122,14 +142,22 @@ mclachlan_8 = CompositionCoefficients(
 
 kahan_li_8 = CompositionCoefficients(
     "Kahan-Li s17odr8a (order 8)",
-    _palindrome([
-        0.13020248308889008087881763, 0.56116298177510838456196441, -0.38947496264484728640807860,
-        0.15884190655515560089621075, -0.39590389413323757733623154, 0.18453964097831570709183254,
-        0.25837438768632204729397911, 0.29501172360931029887096624, -0.60550853383003451169892108,
-    ]),
-    order=8, base_order=2,
-    source="W. Kahan, R.-C. Li, Math. Comp. 66 (1997) 1089-1099; as printed in Hairer, Lubich & Wanner (2006), "
-    "§V.3.2.",
+    _palindrome(
+        [
+            0.13020248308889008087881763,
+            0.56116298177510838456196441,
+            -0.38947496264484728640807860,
+            0.15884190655515560089621075,
+            -0.39590389413323757733623154,
+            0.18453964097831570709183254,
+            0.25837438768632204729397911,
+            0.29501172360931029887096624,
+            -0.60550853383003451169892108,
+        ]
+    ),
+    order=8,
+    base_order=2,
+    source="W. Kahan, R.-C. Li, Math. Comp. 66 (1997) 1089-1099; as printed in Hairer, Lubich & Wanner (2006), §V.3.2.",
 )
 """Order 8 in 17 steps of a symmetric order-2 base (smaller error constant
 than `mclachlan_8` per step, at two more steps)."""

@@ -45,7 +45,7 @@ def orthogonality_defect(g: Float[Array, "*t n n"]) -> Float[Array, "*t"]:
     return _orthogonality_defect(g)
 
 
-def max_drift(values: Float[Array, "t *c"], relative: bool = False) -> Array:
+def max_drift(values: Float[Array, " t *c"], relative: bool = False) -> Array:
     """max_t |values(t) − values(0)| (over all components), optionally divided by max|values(0)|."""
     drift = jnp.max(jnp.abs(values - values[0]))
     if relative:

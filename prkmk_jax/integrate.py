@@ -145,8 +145,7 @@ def resume(
     _check_solver(solver)
     if not isinstance(continuation, Continuation):
         raise TypeError(
-            f"continuation must be a Trajectory's `continuation`, got {type(continuation).__name__}; "
-            "to start from a state, use integrate."
+            f"continuation must be a Trajectory's `continuation`, got {type(continuation).__name__}; to start from a state, use integrate."
         )
     y = solver.bundle.check(continuation.y)
     dtype = jnp.result_type(*jax.tree.leaves(y))

@@ -39,8 +39,5 @@ class OnGroupInterpolation(diffrax.AbstractLocalInterpolation):
         h10 = theta**3 - 2 * theta**2 + theta
         h01 = -2 * theta**3 + 3 * theta**2
         h11 = theta**3 - theta**2
-        u = tuple(
-            (h10 * h) * s0 + h01 * big + (h11 * h) * s1
-            for s0, big, s1 in zip(self.slope0, self.increment, self.slope1)
-        )
+        u = tuple((h10 * h) * s0 + h01 * big + (h11 * h) * s1 for s0, big, s1 in zip(self.slope0, self.increment, self.slope1))
         return self.method.apply_increment(u, self.y0)

@@ -132,9 +132,7 @@ class AbstractMethod(eqx.Module):
         out = jax.eval_shape(vector_field, t, y, args)
         zeros = self.bundle.algebra_zeros(y)
         if not (isinstance(out, (tuple, list)) and len(out) == 2):
-            raise ValueError(
-                f"the vector field must return a pair (ξ, η) of algebra elements, got {jax.tree.structure(out)}."
-            )
+            raise ValueError(f"the vector field must return a pair (ξ, η) of algebra elements, got {jax.tree.structure(out)}.")
         for name, got, want in zip(("ξ", "η"), out, zeros):
             if not hasattr(got, "shape") or tuple(got.shape) != tuple(want.shape):
                 raise ValueError(

@@ -249,9 +249,12 @@ def main(argv=None) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
 
     runs = paper_runs(args.time_scale)
+
     # The step map, hence its symplecticity defect, depends on (bundle,
     # coordinates, tableau, h, initial data) only: compute it once per key.
-    key = lambda r: (r.scene, r.bundle, r.coordinates, r.tableau.name, r.h, r.n)
+    def key(r):
+        return (r.scene, r.bundle, r.coordinates, r.tableau.name, r.h, r.n)
+
     first_of_key = {}
     for r in runs:
         first_of_key.setdefault(key(r), r.name)
@@ -306,13 +309,17 @@ def main(argv=None) -> None:
         "runs": records,
     }
     (args.out / "results.json").write_text(json.dumps(meta, indent=2))
-    np.savez_compressed(args.out / "trajectories.npz", **{f"{run}/{k}": v for run, d in arrays.items() for k, v in d.items()}, seed=args.seed)
+    np.savez_compressed(
+        args.out / "trajectories.npz", **{f"{run}/{k}": v for run, d in arrays.items() for k, v in d.items()}, seed=args.seed
+    )
     _print_table(records)
     print(f"{len(records)} runs in {total_s:.1f} s ({args.jobs} worker processes); files in {args.out}/")
 
 
 def _print_table(records):
-    header = f"{'run':28s} {'T':>6s} {'max|ΔH|':>9s} {'|Π| drift':>9s} {'m drift':>9s} {'orth':>9s} {'sympl':>9s} {'iters':>7s} {'run s':>6s}"
+    header = (
+        f"{'run':28s} {'T':>6s} {'max|ΔH|':>9s} {'|Π| drift':>9s} {'m drift':>9s} {'orth':>9s} {'sympl':>9s} {'iters':>7s} {'run s':>6s}"
+    )
     print(header)
     print("-" * len(header))
     for r in records:

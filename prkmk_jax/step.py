@@ -24,10 +24,10 @@ from typing import Any, Literal
 import equinox as eqx
 import jax
 import jax.flatten_util
-from jax.ad_checkpoint import checkpoint_name
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from jax.ad_checkpoint import checkpoint_name
 from jaxtyping import Array, PyTree
 
 from .bundles import AbstractBundle, AlgebraPair, BundleElement
@@ -102,9 +102,7 @@ class PRKMK(AbstractMethod):
             raise ValueError("rtol and atol cannot both be 0: the implicit stages could never stop.")
         if not isinstance(self.max_iterations, int) or self.max_iterations < 1:
             raise ValueError(f"max_iterations must be a positive int, got {self.max_iterations!r}.")
-        if self.root_finder is not None and not isinstance(
-            self.root_finder, (optx.AbstractFixedPointSolver, optx.AbstractRootFinder)
-        ):
+        if self.root_finder is not None and not isinstance(self.root_finder, (optx.AbstractFixedPointSolver, optx.AbstractRootFinder)):
             raise TypeError("root_finder must be an optimistix fixed-point solver or root finder.")
         self.coordinates.check_bundle(self.bundle)
 
@@ -207,8 +205,8 @@ class PRKMK(AbstractMethod):
 
             def block_slopes(block, idx=idx):
                 trial_first, trial_second = list(first), list(second)
-                for i, (k, l) in zip(idx, block):
-                    trial_first[i], trial_second[i] = k, l
+                for i, (k_i, l_i) in zip(idx, block):
+                    trial_first[i], trial_second[i] = k_i, l_i
                 return tuple(stage_slope(i, trial_first, trial_second) for i in idx)
 
             if stage_guesses is None:
@@ -218,8 +216,8 @@ class PRKMK(AbstractMethod):
             block, block_result, n = self.solve_implicit(block_slopes, guess, dtype)
             result = first_failure(result, block_result)
             iterations = iterations + n
-            for i, (k, l) in zip(idx, block):
-                first[i], second[i] = k, l
+            for i, (k_i, l_i) in zip(idx, block):
+                first[i], second[i] = k_i, l_i
 
         u_next = static_combination(dt, tab.b_first, first, zeros[0])
         v_next = static_combination(dt, tab.b_second, second, zeros[1])

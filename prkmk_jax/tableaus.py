@@ -84,9 +84,7 @@ class PartitionedTableau:
         if self.b_first.ndim != 1 or self.b_first.size == 0:
             raise ValueError(f"{self.name}: b_first must be a non-empty vector of weights, got shape {self.b_first.shape}.")
         s = self.b_first.shape[0]
-        shapes = {
-            "a_first": (s, s), "a_second": (s, s), "b_first": (s,), "b_second": (s,), "c_first": (s,), "c_second": (s,)
-        }
+        shapes = {"a_first": (s, s), "a_second": (s, s), "b_first": (s,), "b_second": (s,), "c_first": (s,), "c_second": (s,)}
         for field, shape in shapes.items():
             if getattr(self, field).shape != shape:
                 raise ValueError(f"{self.name}: {field} has shape {getattr(self, field).shape}, expected {shape} for {s} stages.")
@@ -101,7 +99,10 @@ class PartitionedTableau:
                 raise ValueError(f"{self.name}: b_{which} sums to {b.sum()}, not 1.")
         failed = self.violated_conditions(self.order)
         if failed:
-            raise ValueError(f"{self.name}: {len(failed)} order conditions up to order {self.order} fail, e.g. tree {failed[0][0]} gives {failed[0][1]:.3e} instead of {failed[0][2]:.3e}.")
+            raise ValueError(
+                f"{self.name}: {len(failed)} order conditions up to order {self.order} fail, e.g. "
+                f"tree {failed[0][0]} gives {failed[0][1]:.3e} instead of {failed[0][2]:.3e}."
+            )
 
     @property
     def num_stages(self) -> int:
@@ -131,11 +132,20 @@ class PartitionedTableau:
         """The pair with the two methods exchanged."""
         return PartitionedTableau(
             name or f"{self.name} (swapped)",
-            self.a_second, self.b_second, self.c_second, self.a_first, self.b_first, self.c_first, self.order, self.tolerance
+            self.a_second,
+            self.b_second,
+            self.c_second,
+            self.a_first,
+            self.b_first,
+            self.c_first,
+            self.order,
+            self.tolerance,
         )
 
     def __hash__(self):
-        return hash((self.name, self.order, self.a_first.tobytes(), self.a_second.tobytes(), self.b_first.tobytes(), self.b_second.tobytes()))
+        return hash(
+            (self.name, self.order, self.a_first.tobytes(), self.a_second.tobytes(), self.b_first.tobytes(), self.b_second.tobytes())
+        )
 
     def __eq__(self, other):
         return isinstance(other, PartitionedTableau) and hash(self) == hash(other)
@@ -147,8 +157,12 @@ def _f(rows):
 
 symplectic_euler = PartitionedTableau(
     "symplectic Euler (4.2)",
-    a_first=_f([["1"]]), b_first=_f(["1"]), c_first=_f(["1"]),
-    a_second=_f([["0"]]), b_second=_f(["1"]), c_second=_f(["0"]),
+    a_first=_f([["1"]]),
+    b_first=_f(["1"]),
+    c_first=_f(["1"]),
+    a_second=_f([["0"]]),
+    b_second=_f(["1"]),
+    c_second=_f(["0"]),
     order=1,
 )
 """Eq. (4.2): implicit Euler on the first component, explicit on the second."""
@@ -158,8 +172,12 @@ symplectic_euler_adjoint = symplectic_euler.swapped("symplectic Euler, adjoint")
 
 stormer_verlet = PartitionedTableau(
     "Störmer–Verlet (Lobatto IIIA–IIIB)",
-    a_first=_f([["0", "0"], ["1/2", "1/2"]]), b_first=_f(["1/2", "1/2"]), c_first=_f(["0", "1"]),
-    a_second=_f([["1/2", "0"], ["1/2", "0"]]), b_second=_f(["1/2", "1/2"]), c_second=_f(["1/2", "1/2"]),
+    a_first=_f([["0", "0"], ["1/2", "1/2"]]),
+    b_first=_f(["1/2", "1/2"]),
+    c_first=_f(["0", "1"]),
+    a_second=_f([["1/2", "0"], ["1/2", "0"]]),
+    b_second=_f(["1/2", "1/2"]),
+    c_second=_f(["1/2", "1/2"]),
     order=2,
 )
 """The §5 pair: 2-stage Lobatto IIIA on the first component, IIIB on the second
@@ -171,9 +189,11 @@ stormer_verlet_adjoint = stormer_verlet.swapped("Störmer–Verlet (Lobatto IIIB
 lobatto_iiia_iiib4 = PartitionedTableau(
     "Lobatto IIIA–IIIB, 3 stages",
     a_first=_f([["0", "0", "0"], ["5/24", "1/3", "-1/24"], ["1/6", "2/3", "1/6"]]),
-    b_first=_f(["1/6", "2/3", "1/6"]), c_first=_f(["0", "1/2", "1"]),
+    b_first=_f(["1/6", "2/3", "1/6"]),
+    c_first=_f(["0", "1/2", "1"]),
     a_second=_f([["1/6", "-1/6", "0"], ["1/6", "1/3", "0"], ["1/6", "5/6", "0"]]),
-    b_second=_f(["1/6", "2/3", "1/6"]), c_second=_f(["0", "1/2", "1"]),
+    b_second=_f(["1/6", "2/3", "1/6"]),
+    c_second=_f(["0", "1/2", "1"]),
     order=4,
 )
 """3-stage Lobatto IIIA–IIIB pair, order 4, symplectic."""
@@ -181,20 +201,24 @@ lobatto_iiia_iiib4 = PartitionedTableau(
 _R5 = np.sqrt(5.0)
 lobatto_iiia_iiib6 = PartitionedTableau(
     "Lobatto IIIA–IIIB, 4 stages",
-    a_first=np.array([
-        [0.0, 0.0, 0.0, 0.0],
-        [(11 + _R5) / 120, (25 - _R5) / 120, (25 - 13 * _R5) / 120, (-1 + _R5) / 120],
-        [(11 - _R5) / 120, (25 + 13 * _R5) / 120, (25 + _R5) / 120, (-1 - _R5) / 120],
-        [1 / 12, 5 / 12, 5 / 12, 1 / 12],
-    ]),
+    a_first=np.array(
+        [
+            [0.0, 0.0, 0.0, 0.0],
+            [(11 + _R5) / 120, (25 - _R5) / 120, (25 - 13 * _R5) / 120, (-1 + _R5) / 120],
+            [(11 - _R5) / 120, (25 + 13 * _R5) / 120, (25 + _R5) / 120, (-1 - _R5) / 120],
+            [1 / 12, 5 / 12, 5 / 12, 1 / 12],
+        ]
+    ),
     b_first=np.array([1 / 12, 5 / 12, 5 / 12, 1 / 12]),
     c_first=np.array([0.0, (5 - _R5) / 10, (5 + _R5) / 10, 1.0]),
-    a_second=np.array([
-        [1 / 12, (-1 - _R5) / 24, (-1 + _R5) / 24, 0.0],
-        [1 / 12, (25 + _R5) / 120, (25 - 13 * _R5) / 120, 0.0],
-        [1 / 12, (25 + 13 * _R5) / 120, (25 - _R5) / 120, 0.0],
-        [1 / 12, (11 - _R5) / 24, (11 + _R5) / 24, 0.0],
-    ]),
+    a_second=np.array(
+        [
+            [1 / 12, (-1 - _R5) / 24, (-1 + _R5) / 24, 0.0],
+            [1 / 12, (25 + _R5) / 120, (25 - 13 * _R5) / 120, 0.0],
+            [1 / 12, (25 + 13 * _R5) / 120, (25 - _R5) / 120, 0.0],
+            [1 / 12, (11 - _R5) / 24, (11 + _R5) / 24, 0.0],
+        ]
+    ),
     b_second=np.array([1 / 12, 5 / 12, 5 / 12, 1 / 12]),
     c_second=np.array([0.0, (5 - _R5) / 10, (5 + _R5) / 10, 1.0]),
     order=6,
@@ -205,6 +229,4 @@ IIIA and IIIB coefficients of Hairer & Wanner, Solving ODEs II, §IV.5). Its
 order conditions (every bicoloured tree up to order 6) are checked on
 construction, like every tableau's."""
 
-ALL_TABLEAUS = (
-    symplectic_euler, symplectic_euler_adjoint, stormer_verlet, stormer_verlet_adjoint, lobatto_iiia_iiib4, lobatto_iiia_iiib6
-)
+ALL_TABLEAUS = (symplectic_euler, symplectic_euler_adjoint, stormer_verlet, stormer_verlet_adjoint, lobatto_iiia_iiib4, lobatto_iiia_iiib6)

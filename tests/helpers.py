@@ -60,7 +60,13 @@ def initial_state(bundle, seed=0, m0=M0):
 def state_vector(bundle, y) -> np.ndarray:
     """Flatten a (batch of) state(s) to what the reference solves."""
     if isinstance(bundle, pk.Cartesian):
-        return np.concatenate([np.asarray(y.base.matrix).reshape(*y.base.matrix.shape[:-2], 9), np.asarray(y.fiber.matrix).reshape(*y.fiber.matrix.shape[:-2], 9)], axis=-1)
+        return np.concatenate(
+            [
+                np.asarray(y.base.matrix).reshape(*y.base.matrix.shape[:-2], 9),
+                np.asarray(y.fiber.matrix).reshape(*y.fiber.matrix.shape[:-2], 9),
+            ],
+            axis=-1,
+        )
     return np.concatenate([np.asarray(y.base.matrix).reshape(*y.base.matrix.shape[:-2], 9), np.asarray(y.fiber)], axis=-1)
 
 
@@ -82,7 +88,9 @@ def reference(bundle, y0, t_end, inertia=INERTIA, t_eval=None) -> np.ndarray:
     state at `t_end`, or at each of `t_eval` (one row per time)."""
     cartesian = isinstance(bundle, pk.Cartesian)
     z0 = state_vector(bundle, y0)
-    sol = solve_ivp(_reference_rhs, (0.0, t_end), z0, method="DOP853", rtol=1e-13, atol=1e-13, args=(np.asarray(inertia), cartesian), t_eval=t_eval)
+    sol = solve_ivp(
+        _reference_rhs, (0.0, t_end), z0, method="DOP853", rtol=1e-13, atol=1e-13, args=(np.asarray(inertia), cartesian), t_eval=t_eval
+    )
     return sol.y[:, -1] if t_eval is None else sol.y.T
 
 

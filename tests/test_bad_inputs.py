@@ -47,7 +47,9 @@ STATIC = {
     "Semidirect of a string": (lambda: pk.Semidirect("SO3"), TypeError, "base group class"),
     "Semidirect trivialization": (lambda: pk.Semidirect(pk.SO3, "middle"), ValueError, "trivialization"),
     "float32 base, float64 fiber": (
-        lambda: _integrate(pk.BundleElement(pk.SO3(jnp.eye(3, dtype=jnp.float32)), GOOD.fiber)), TypeError, "dtype"
+        lambda: _integrate(pk.BundleElement(pk.SO3(jnp.eye(3, dtype=jnp.float32)), GOOD.fiber)),
+        TypeError,
+        "dtype",
     ),
     "fiber of the wrong shape": (lambda: _integrate(pk.BundleElement(GOOD.base, jnp.zeros(4))), ValueError, "fiber shape"),
     "group fiber on T*G": (lambda: _integrate(pk.BundleElement(GOOD.base, GOOD.base)), TypeError, "algebra-array fiber"),
@@ -59,11 +61,11 @@ STATIC = {
     "Cayley on a non-quadratic group": (lambda: pk.PRKMK(pk.DirectProduct(PositiveReals), pk.Cayley()), TypeError, "quadratic"),
     # tableaus
     "tableau of scalars": (lambda: pk.PartitionedTableau("x", 1.0, 1.0, 1.0, 0.0, 1.0, 0.0, 1), ValueError, "non-empty vector"),
-    "tableau row sums": (
-        lambda: pk.PartitionedTableau("x", [[0.5]], [1.0], [1.0], [[0.0]], [1.0], [0.0], 1), ValueError, "row sums"
-    ),
+    "tableau row sums": (lambda: pk.PartitionedTableau("x", [[0.5]], [1.0], [1.0], [[0.0]], [1.0], [0.0], 1), ValueError, "row sums"),
     "tableau order too high": (
-        lambda: pk.PartitionedTableau("x", [[1.0]], [1.0], [1.0], [[0.0]], [1.0], [0.0], 2), ValueError, "order conditions"
+        lambda: pk.PartitionedTableau("x", [[1.0]], [1.0], [1.0], [[0.0]], [1.0], [0.0], 2),
+        ValueError,
+        "order conditions",
     ),
     # the method
     "negative rtol": (lambda: pk.PRKMK(COTANGENT, rtol=-1.0), ValueError, "rtol must be"),
@@ -73,15 +75,15 @@ STATIC = {
     "form sideways": (lambda: pk.PRKMK(COTANGENT, form="sideways"), ValueError, "form must be"),
     "bundle not a bundle": (lambda: pk.PRKMK(pk.SO3), TypeError, "bundle must be"),
     "composition of the wrong order": (
-        lambda: pk.Composition(pk.PRKMK(COTANGENT, tableau=pk.lobatto_iiia_iiib4), pk.kahan_li_6), ValueError, "order 2"
+        lambda: pk.Composition(pk.PRKMK(COTANGENT, tableau=pk.lobatto_iiia_iiib4), pk.kahan_li_6),
+        ValueError,
+        "order 2",
     ),
     "adjoint of a composition": (lambda: pk.Adjoint(pk.Composition(METHOD, pk.suzuki_5)), TypeError, "Adjoint takes a PRKMK"),
     # integrate
     "integrate with a solver that is not a method": (lambda: _integrate(method=diffrax.Tsit5()), TypeError, "PRKMK method"),
     "num_steps 0": (lambda: _integrate(num_steps=0), ValueError, "num_steps must be an int"),
-    "num_steps traced": (
-        lambda: jax.jit(lambda n: _integrate(num_steps=n))(10), ValueError, "static Python int"
-    ),
+    "num_steps traced": (lambda: jax.jit(lambda n: _integrate(num_steps=n))(10), ValueError, "static Python int"),
     "save_every not a divisor": (lambda: _integrate(num_steps=10, save_every=3), ValueError, "must divide"),
     "dt negative": (lambda: _integrate(dt=-0.1), ValueError, "dt must be > 0"),
     "vector field of the wrong shape": (lambda: _integrate(field=_wrong_shape_field), ValueError, "returned ξ with shape"),

@@ -39,10 +39,7 @@ def test_dop853_reference_matches_elliptic_solution(seed, inertia):
     # The oracle keeps the invariants it is not built to keep.
     inv = _common.invariants(q, pi, inertia)
     assert np.abs(inv["orthogonality"]).max() < 1e-11
-    assert (
-        np.abs(inv["spatial_momentum"] - inv["spatial_momentum"][0]).max()
-        < 1e-11 * scale
-    )
+    assert np.abs(inv["spatial_momentum"] - inv["spatial_momentum"][0]).max() < 1e-11 * scale
 
 
 def test_both_elliptic_branches_are_exercised():
@@ -63,7 +60,4 @@ def test_geodesic_distance():
     q = np.asarray(SO3.exp(jnp.array([0.3, -0.2, 0.1])).matrix)
     for angle in (1e-9, 1e-4, 0.5, 3.0):
         r = np.asarray(SO3.exp(jnp.array([angle, 0.0, 0.0])).matrix)
-        assert (
-            abs(_common.geodesic_distance(q @ r, q) - angle)
-            < 1e-12 * max(1, angle) + 1e-15
-        )
+        assert abs(_common.geodesic_distance(q @ r, q) - angle) < 1e-12 * max(1, angle) + 1e-15

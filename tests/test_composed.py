@@ -117,6 +117,7 @@ def test_adjoint_undoes_the_reversed_step(bundle, tab, coordinates, form):
 
 def _adjoint_tableau(tab):
     """The classical adjoint of an RK pair: a*ᵢⱼ = b_{s+1−j} − a_{s+1−i,s+1−j}, b* = b reversed."""
+
     def adjoint(a, b):
         return b[::-1][None, :] - a[::-1, ::-1], b[::-1]
 
@@ -189,7 +190,19 @@ _SYM_SV_CART = pk.Symmetrized(_prkmk(CARTESIAN))
         (pk.Composition(_SYM_SV_CART, pk.kahan_li_8), (16, 24, 32)),
         (_prkmk(CARTESIAN, pk.lobatto_iiia_iiib6), (20, 40, 80)),
     ],
-    ids=["triple-cot", "suzuki-cot", "KL6-cot", "McL8-cot", "KL8-cot", "L6-cot", "symSE-cart", "triple-cart", "KL6-cart", "KL8-cart", "L6-cart"],
+    ids=[
+        "triple-cot",
+        "suzuki-cot",
+        "KL6-cot",
+        "McL8-cot",
+        "KL8-cot",
+        "L6-cot",
+        "symSE-cart",
+        "triple-cart",
+        "KL6-cart",
+        "KL8-cart",
+        "L6-cart",
+    ],
 )
 def test_empirical_order(method, steps):
     slope, errors = empirical_order(method, steps=steps)
@@ -229,9 +242,7 @@ def test_composition_through_diffeqsolve_equals_integrate_and_interpolates():
     method = pk.Composition(_SV_COT, pk.kahan_li_6)
     traj = pk.integrate(method, field, y0, 0.0, 0.1, 10, ARGS)
     ts = jnp.array([0.25, 0.55, 0.95])
-    sol = diffrax.diffeqsolve(
-        pk.PRKMKTerm(field), pk.PRKMKSolver(method), 0.0, 1.0, 0.1, y0, ARGS, saveat=diffrax.SaveAt(ts=ts, t1=True)
-    )
+    sol = diffrax.diffeqsolve(pk.PRKMKTerm(field), pk.PRKMKSolver(method), 0.0, 1.0, 0.1, y0, ARGS, saveat=diffrax.SaveAt(ts=ts, t1=True))
     np.testing.assert_allclose(sol.ys.fiber[-1], traj.ys.fiber[-1], rtol=0, atol=1e-13)
     np.testing.assert_allclose(sol.ys.base.matrix[-1], traj.ys.base.matrix[-1], rtol=0, atol=1e-13)
     dense = jax.tree.map(lambda a: a[:-1], sol.ys)
@@ -247,8 +258,15 @@ def test_symmetrized_step_doubling_reaches_the_tolerance():
     ref = reference(CARTESIAN, y0, 2.0)
     solver = pk.PRKMKSolver(pk.Composition(_SYM_SV_CART, pk.yoshida_triple_jump), adaptive=True)
     sol = diffrax.diffeqsolve(
-        pk.PRKMKTerm(field), solver, 0.0, 2.0, 0.05, y0, ARGS,
-        stepsize_controller=diffrax.PIDController(rtol=1e-7, atol=1e-7), max_steps=1000,
+        pk.PRKMKTerm(field),
+        solver,
+        0.0,
+        2.0,
+        0.05,
+        y0,
+        ARGS,
+        stepsize_controller=diffrax.PIDController(rtol=1e-7, atol=1e-7),
+        max_steps=1000,
     )
     err = np.abs(state_vector(CARTESIAN, jax.tree.map(lambda a: a[-1], sol.ys)) - ref).max()
     assert err <= 1e-6, err

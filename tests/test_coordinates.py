@@ -5,10 +5,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_groups import BUNDLES, bundle_algebra, tangent_to_algebra
 
 import prkmk_jax as pk
 from helpers import PositiveReals, max_leaf_difference
-from test_groups import BUNDLES, bundle_algebra, tangent_to_algebra
 
 COORDINATES = {"exp": pk.Exp(truncation=None), "cayley": pk.Cayley(truncation=None)}
 
@@ -16,7 +16,10 @@ COORDINATES = {"exp": pk.Exp(truncation=None), "cayley": pk.Cayley(truncation=No
 def _differential(bundle, coords, U, V):
     """X = d/dt f(U + tV) f(U)⁻¹ |_{t=0}, by forward-mode autodiff."""
     f_inv = bundle.inverse(coords.map(bundle, U))
-    moved = lambda W: bundle.multiply(coords.map(bundle, W), f_inv)
+
+    def moved(W):
+        return bundle.multiply(coords.map(bundle, W), f_inv)
+
     return tangent_to_algebra(bundle, jax.jvp(moved, (U,), (V,))[1])
 
 

@@ -68,7 +68,11 @@ def test_energy_balance_and_state_at_the_method_order(tableau, order):
     state_errors, balance_errors = [], []
     h0 = _energy(np.asarray(BODY.to_embedding(Y0)))
     for n in steps:
-        z = np.asarray(BODY.to_embedding(jax.tree.map(lambda a: a[-1], pk.integrate(method, BODY, Y0, 0.0, T_END / n, int(n), ARGS, save_every=int(n)).ys)))
+        z = np.asarray(
+            BODY.to_embedding(
+                jax.tree.map(lambda a: a[-1], pk.integrate(method, BODY, Y0, 0.0, T_END / n, int(n), ARGS, save_every=int(n)).ys)
+            )
+        )
         state_errors.append(np.max(np.abs(z - REFERENCE[:12])))
         balance_errors.append(abs(_energy(z) - h0 - REFERENCE[12]))
     hs = T_END / steps

@@ -175,7 +175,10 @@ def test_bundle_bracket_is_the_group_commutator(name):
 
     def adjoint_of_exp(t):
         g = bundle.exp(scaled(t, X))
-        inner = lambda s: bundle.multiply(bundle.multiply(g, bundle.exp(scaled(s, Y))), bundle.inverse(g))
+
+        def inner(s):
+            return bundle.multiply(bundle.multiply(g, bundle.exp(scaled(s, Y))), bundle.inverse(g))
+
         return tangent_to_algebra(bundle, jax.jvp(inner, (0.0,), (1.0,))[1])
 
     _, bracket = jax.jvp(adjoint_of_exp, (0.0,), (1.0,))

@@ -22,8 +22,13 @@ EMBEDDING = jax.jit(TOP.embedding_field)
 def _reference(t_end, args, t_eval=None):
     """DOP853 at rtol = atol = 1e-13 on the embedding ℝ⁹×ℝ³."""
     sol = solve_ivp(
-        lambda t, z: np.asarray(EMBEDDING(t, jnp.asarray(z), args)), (0.0, t_end), np.asarray(TOP.to_embedding(Y0)),
-        method="DOP853", rtol=1e-13, atol=1e-13, t_eval=t_eval,
+        lambda t, z: np.asarray(EMBEDDING(t, jnp.asarray(z), args)),
+        (0.0, t_end),
+        np.asarray(TOP.to_embedding(Y0)),
+        method="DOP853",
+        rtol=1e-13,
+        atol=1e-13,
+        t_eval=t_eval,
     )
     return sol.y.T
 
@@ -131,5 +136,7 @@ def test_diffeqsolve_with_the_scene_as_term_and_gradient_in_the_parameters():
     lever = ASYMMETRIC.lever
     grad = jax.grad(final_momentum_projection)(lever)
     step = 1e-6
-    fd = np.array([(final_momentum_projection(lever + step * e) - final_momentum_projection(lever - step * e)) / (2 * step) for e in np.eye(3)])
+    fd = np.array(
+        [(final_momentum_projection(lever + step * e) - final_momentum_projection(lever - step * e)) / (2 * step) for e in np.eye(3)]
+    )
     np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-9)

@@ -39,7 +39,9 @@ def test_non_autonomous_order(tab):
         return y.fiber.value, -jnp.sin(y.base.value) + 0.3 * jnp.cos(2 * t)
 
     t0, t_end = 0.4, 1.4
-    ref = solve_ivp(lambda t, z: [z[1], -np.sin(z[0]) + 0.3 * np.cos(2 * t)], (t0, t_end), [1.0, 0.2], method="DOP853", rtol=1e-13, atol=1e-13).y[:, -1]
+    ref = solve_ivp(
+        lambda t, z: [z[1], -np.sin(z[0]) + 0.3 * np.cos(2 * t)], (t0, t_end), [1.0, 0.2], method="DOP853", rtol=1e-13, atol=1e-13
+    ).y[:, -1]
     y0 = pk.BundleElement(pk.VectorSpace(jnp.array([1.0])), pk.VectorSpace(jnp.array([0.2])))
     solver = pk.PRKMK(pk.Cartesian(pk.VectorSpace), pk.Exp(), tab)
     steps = {1: (100, 200, 400, 800), 6: (4, 8, 16, 32)}.get(tab.order, (10, 20, 40, 80))
@@ -55,7 +57,18 @@ def test_non_autonomous_order(tab):
 def test_stays_on_group_for_1e5_steps(coords):
     bundle = pk.Cartesian(pk.SO3)
     y0 = initial_state(bundle)
-    traj = jax.jit(lambda y: pk.integrate(pk.PRKMK(bundle, coords, pk.symplectic_euler_adjoint, form="body"), rigid_body_field(bundle, "body"), y, 0.0, 0.01, 100_000, jnp.asarray(INERTIA), save_every=10_000))(y0)
+    traj = jax.jit(
+        lambda y: pk.integrate(
+            pk.PRKMK(bundle, coords, pk.symplectic_euler_adjoint, form="body"),
+            rigid_body_field(bundle, "body"),
+            y,
+            0.0,
+            0.01,
+            100_000,
+            jnp.asarray(INERTIA),
+            save_every=10_000,
+        )
+    )(y0)
     for q in (traj.ys.base.matrix, traj.ys.fiber.matrix):
         defect = np.abs(np.einsum("tji,tjk->tik", q, q) - np.eye(3)).max()
         assert defect <= 1e-12, defect
@@ -139,7 +152,9 @@ def test_gradient_wrt_initial_momentum_under_vmap():
         np.testing.assert_allclose(grads[b], fd, rtol=1e-6, atol=1e-9 * np.abs(fd).max())
 
 
-@pytest.mark.parametrize("coords", [pk.Exp(truncation=None), pk.Exp(), pk.Cayley(truncation=None)], ids=["exp-exact", "exp-series", "cayley"])
+@pytest.mark.parametrize(
+    "coords", [pk.Exp(truncation=None), pk.Exp(), pk.Cayley(truncation=None)], ids=["exp-exact", "exp-series", "cayley"]
+)
 def test_gradients_finite_through_the_identity(coords):
     """Every step evaluates f and df⁻¹ at U = 0; starting at g = I and Π = 0
     the state itself sits at the identity too."""

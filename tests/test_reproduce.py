@@ -113,7 +113,9 @@ def test_symplecticity_defect_vanishes_for_symplectic_prk(tab):
 
 def test_symplecticity_defect_detects_non_symplectic_rk():
     a = np.array([[0, 0], [0.5, 0]])
-    midpoint = pk.PartitionedTableau("explicit midpoint", a, np.array([0, 1.0]), np.array([0, 0.5]), a, np.array([0, 1.0]), np.array([0, 0.5]), 2)
+    midpoint = pk.PartitionedTableau(
+        "explicit midpoint", a, np.array([0, 1.0]), np.array([0, 0.5]), a, np.array([0, 1.0]), np.array([0, 0.5]), 2
+    )
     assert diagnostics.canonical_symplecticity_defect(_classical_step_map(midpoint), jnp.array([1.1, -0.4])) > 1e-3
 
 
@@ -159,11 +161,29 @@ def test_canonical_chart_round_trip():
 
 # --- the command -------------------------------------------------------------------
 RECORD_FIELDS = {
-    "run", "scene", "representation", "n", "coordinates", "tableau", "h", "T", "num_steps", "figure",
-    "max_abs_energy_error", "energy_error_first_quarter", "energy_error_last_quarter", "final_energy_error",
-    "max_body_momentum_norm_drift", "max_spatial_momentum_drift", "max_orthogonality_defect",
-    "symplecticity_defect", "implicit_iterations_total", "implicit_iterations_max_per_step",
-    "compile_time_s", "wall_time_s", "result",
+    "run",
+    "scene",
+    "representation",
+    "n",
+    "coordinates",
+    "tableau",
+    "h",
+    "T",
+    "num_steps",
+    "figure",
+    "max_abs_energy_error",
+    "energy_error_first_quarter",
+    "energy_error_last_quarter",
+    "final_energy_error",
+    "max_body_momentum_norm_drift",
+    "max_spatial_momentum_drift",
+    "max_orthogonality_defect",
+    "symplecticity_defect",
+    "implicit_iterations_total",
+    "implicit_iterations_max_per_step",
+    "compile_time_s",
+    "wall_time_s",
+    "result",
 }
 
 

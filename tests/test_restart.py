@@ -97,9 +97,7 @@ def test_diffeqsolve_continues_through_its_solver_state():
     term, solver = pk.PRKMKTerm(forced_body), pk.PRKMKSolver(SV)
 
     def solve(y, t0, t1, state=None):
-        return diffrax.diffeqsolve(
-            term, solver, t0, t1, DT, y, args, solver_state=state, saveat=diffrax.SaveAt(t1=True, solver_state=True)
-        )
+        return diffrax.diffeqsolve(term, solver, t0, t1, DT, y, args, solver_state=state, saveat=diffrax.SaveAt(t1=True, solver_state=True))
 
     whole = solve(y0, 0.0, 40 * DT)
     head = solve(y0, 0.0, 25 * DT)

@@ -77,7 +77,9 @@ def test_dense_solution_evaluate_and_backward_solve():
         sol.evaluate(0.1, 0.2)
     # backward in time from y(1) returns to y(0)
     y1 = jax.tree.map(lambda a: a[-1], sol.ys)
-    back = diffrax.diffeqsolve(TERM, pk.PRKMKSolver(method), 1.0, 0.0, -0.05, y1, jnp.asarray(INERTIA), saveat=diffrax.SaveAt(ts=jnp.array([0.5, 0.0])))
+    back = diffrax.diffeqsolve(
+        TERM, pk.PRKMKSolver(method), 1.0, 0.0, -0.05, y1, jnp.asarray(INERTIA), saveat=diffrax.SaveAt(ts=jnp.array([0.5, 0.0]))
+    )
     np.testing.assert_allclose(back.ys.fiber[-1], y0.fiber, atol=1e-7)
     np.testing.assert_allclose(back.ys.base.matrix[-1], y0.base.matrix, atol=1e-7)
     np.testing.assert_allclose(back.ys.fiber[0], sol.evaluate(0.5).fiber, atol=1e-6)
@@ -187,7 +189,19 @@ def test_pid_controller_reaches_the_tolerance():
     y0 = initial_state(COTANGENT)
     ref = reference(COTANGENT, y0, 10.0)
     solver = pk.PRKMKSolver(_method(pk.lobatto_iiia_iiib4), adaptive=True)
-    run = jax.jit(lambda rtol: diffrax.diffeqsolve(TERM, solver, 0.0, 10.0, 0.01, y0, jnp.asarray(INERTIA), stepsize_controller=diffrax.PIDController(rtol=rtol, atol=rtol), max_steps=4096))
+    run = jax.jit(
+        lambda rtol: diffrax.diffeqsolve(
+            TERM,
+            solver,
+            0.0,
+            10.0,
+            0.01,
+            y0,
+            jnp.asarray(INERTIA),
+            stepsize_controller=diffrax.PIDController(rtol=rtol, atol=rtol),
+            max_steps=4096,
+        )
+    )
     steps = []
     for rtol in (1e-4, 1e-6, 1e-8):
         sol = run(rtol)
@@ -215,6 +229,7 @@ def test_gradients_wrt_initial_momentum_and_inertia_under_vmap():
     eps = 1e-5
     for b in range(3):
         for arg, grad in enumerate(grads):
+
             def shifted(e, sign, b=b, arg=arg):
                 point = [pis[b], inertias[b]]
                 point[arg] = point[arg] + sign * eps * e

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from prkmk_jax.step import stage_blocks
 from helpers import INERTIA, empirical_order, initial_state, random_rotation, rigid_body_field
+from prkmk_jax.step import stage_blocks
 
 H = 0.1
 
@@ -56,7 +56,9 @@ def test_section_4_3_update_formulas():
     p0 = pk.SO3.exp(w0)
     u1, v1 = _solve_4_7(g0, w0)
     g1 = pk.SO3.exp(u1).matrix @ g0
-    se = lambda bundle: pk.PRKMK(bundle, pk.Exp(), pk.symplectic_euler, form="space")
+
+    def se(bundle):
+        return pk.PRKMK(bundle, pk.Exp(), pk.symplectic_euler, form="space")
 
     # G×g, (4.8): g₁ = exp(u₁)g₀, w₁ = v₁ + w₀ — the field (2.2–2.3) is (ξ, η).
     direct = pk.DirectProduct(pk.SO3)
@@ -88,14 +90,14 @@ def _classical_prk(tab, q, p, t, h, args, iters=200):
     """Algorithm 4.1 written out (fixed-point iteration on all stage slopes)."""
     s = tab.num_stages
     k = np.zeros((s,) + q.shape)
-    l = np.zeros((s,) + p.shape)
+    l_slopes = np.zeros((s,) + p.shape)
     for _ in range(iters):
         u = q + h * np.tensordot(tab.a_first, k, axes=1)
-        v = p + h * np.tensordot(tab.a_second, l, axes=1)
+        v = p + h * np.tensordot(tab.a_second, l_slopes, axes=1)
         new = [_pendulum(t + tab.c_first[i] * h, pk.BundleElement(pk.VectorSpace(u[i]), pk.VectorSpace(v[i])), args) for i in range(s)]
         k = np.stack([np.asarray(n[0]) for n in new])
-        l = np.stack([np.asarray(n[1]) for n in new])
-    return q + h * tab.b_first @ k, p + h * tab.b_second @ l
+        l_slopes = np.stack([np.asarray(n[1]) for n in new])
+    return q + h * tab.b_first @ k, p + h * tab.b_second @ l_slopes
 
 
 @pytest.mark.parametrize("tab", pk.tableaus.ALL_TABLEAUS, ids=lambda t: t.name)
@@ -187,7 +189,7 @@ def test_stage_guesses_change_the_iterations_not_the_step(tab):
     args = jnp.asarray(INERTIA)
     y_default, _, result, n_default, stages = solver.step_with_stages(field, 0.0, y0, H, args)
     assert result == pk.RESULTS.successful
-    far = tuple((k + 0.3, l - 0.2) for k, l in stages)
+    far = tuple((k_i + 0.3, l_i - 0.2) for k_i, l_i in stages)
     y_far, _, _, n_far, _ = solver.step_with_stages(field, 0.0, y0, H, args, stage_guesses=far)
     y_exact, _, _, n_exact, _ = solver.step_with_stages(field, 0.0, y0, H, args, stage_guesses=stages)
     for y in (y_far, y_exact):

@@ -1,4 +1,7 @@
-from .base import AbstractLieGroup as AbstractLieGroup, AbstractQuadraticGroup as AbstractQuadraticGroup
-from .so3 import SO3 as SO3, hat as hat, vee as vee
+from .base import AbstractLieGroup as AbstractLieGroup
+from .base import AbstractQuadraticGroup as AbstractQuadraticGroup
+from .so3 import SO3 as SO3
+from .so3 import hat as hat
+from .so3 import vee as vee
 from .son import SOn as SOn
 from .vector_space import VectorSpace as VectorSpace

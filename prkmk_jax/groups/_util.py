@@ -85,7 +85,9 @@ def checked_rotation(matrix: Array, group_name: str) -> Array:
     tol = max(float(np.sqrt(np.finfo(matrix.dtype).eps)), ORTHOGONALITY_TOLERANCE)
     matrix = eqx.error_if(matrix, ~jnp.all(jnp.isfinite(matrix)), f"{group_name} element is not finite (NaN or inf).")
     matrix = eqx.error_if(
-        matrix, jnp.any(orthogonality_defect(matrix) > tol), f"{group_name} element is not orthogonal: max|RᵀR − I| exceeds {tol:.0e} "
-        "(if this is rounding drift, `project()` returns the nearest rotation)."
+        matrix,
+        jnp.any(orthogonality_defect(matrix) > tol),
+        f"{group_name} element is not orthogonal: max|RᵀR − I| exceeds {tol:.0e} "
+        "(if this is rounding drift, `project()` returns the nearest rotation).",
     )
     return eqx.error_if(matrix, jnp.any(jnp.linalg.det(matrix) < 0), f"{group_name} element has det = −1: a reflection, not a rotation.")

@@ -6,8 +6,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._util import as_array, bjorck_step, check_floating, checked_rotation, nearest_rotation, taylor_or_exact
 from .base import AbstractQuadraticGroup
-from ._util import as_array, check_floating, checked_rotation, nearest_rotation, bjorck_step, taylor_or_exact
 
 # Below this θ² the Taylor branches are used; the exact forms that cancel
 # (θ − sin θ)/θ³ and the dexp⁻¹ coefficient lose ~eps/θ² relative accuracy.

@@ -9,9 +9,9 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 from jaxtyping import Array, Float
 
-from .base import AbstractQuadraticGroup
 from ..series import dexp_inv_series
-from ._util import as_array, check_floating, checked_rotation, nearest_rotation, bjorck_step
+from ._util import as_array, bjorck_step, check_floating, checked_rotation, nearest_rotation
+from .base import AbstractQuadraticGroup
 
 EXACT_SERIES_TERMS = 40
 """Terms of the Bernoulli series used as the exact dexp⁻¹ on so(n) for small u.

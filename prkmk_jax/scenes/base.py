@@ -51,9 +51,7 @@ class AbstractScene(eqx.Module):
         Nothing there keeps the state on the group: that is what such a
         comparison measures."""
 
-    def method(
-        self, tableau: PartitionedTableau, coordinates: AbstractCoordinates | None = None, **options
-    ) -> PRKMK:
+    def method(self, tableau: PartitionedTableau, coordinates: AbstractCoordinates | None = None, **options) -> PRKMK:
         """The PRKMK method of `tableau` for this scene's bundle and form
         (exp coordinates unless given; `options` go to `PRKMK`)."""
         return PRKMK(self.bundle, Exp() if coordinates is None else coordinates, tableau, form=self.form, **options)

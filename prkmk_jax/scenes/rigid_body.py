@@ -216,8 +216,7 @@ class FreeRigidBody(AbstractScene):
         left = isinstance(self.bundle, AbstractSemidirect) and self.bundle.trivialization == "left"
         if not (left or isinstance(self.bundle, DirectProduct)) or self.bundle.base is not SO3:
             raise TypeError(
-                "FreeRigidBody lives on Cotangent(SO3), Semidirect(SO3, 'left') or DirectProduct(SO3), "
-                f"got {type(self.bundle).__name__}."
+                f"FreeRigidBody lives on Cotangent(SO3), Semidirect(SO3, 'left') or DirectProduct(SO3), got {type(self.bundle).__name__}."
             )
         if self.form != "body":
             raise ValueError("FreeRigidBody is written in body form.")
@@ -276,9 +275,7 @@ class SymmetricRigidBody(AbstractScene):
             "energy": diagnostics.energy(m, angular_velocity(m, inertia), matrix),
             "momentum norm": diagnostics.body_momentum_norm(m, matrix),
             "spatial momentum": diagnostics.spatial_momentum(g, m, matrix),
-            "orthogonality": jnp.maximum(
-                diagnostics.orthogonality_defect(y.base.matrix), diagnostics.orthogonality_defect(y.fiber.matrix)
-            ),
+            "orthogonality": jnp.maximum(diagnostics.orthogonality_defect(y.base.matrix), diagnostics.orthogonality_defect(y.fiber.matrix)),
         }
 
     def to_embedding(self, y: BundleElement) -> Float[Array, "*batch d"]:
