@@ -9,10 +9,17 @@ from nbclient import NotebookClient
 
 NOTEBOOK_DIR = Path(__file__).resolve().parents[1] / "notebooks"
 NOTEBOOKS = sorted(NOTEBOOK_DIR.glob("*.ipynb"))
-EXPECTED = ["01_paper_section5", "02_fit_inertia", "03_batch_tumbling", "04_where_methods_fail", "05_choosing_a_method"]
+EXPECTED = [
+    "01_paper_section5",
+    "02_fit_inertia",
+    "03_batch_tumbling",
+    "04_where_methods_fail",
+    "05_choosing_a_method",
+    "06_fit_control_torque",
+]
 
 
-def test_the_five_notebooks_are_there():
+def test_the_notebooks_are_there():
     assert [p.stem for p in NOTEBOOKS] == EXPECTED
 
 
