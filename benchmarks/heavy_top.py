@@ -90,9 +90,7 @@ def _errors(zs):
 
 
 def _timed(fn, *args, repeats):
-    start = time.perf_counter()
-    compiled = jax.jit(fn).lower(*args).compile()
-    compile_s = time.perf_counter() - start
+    compiled, compile_s = C.compile_fn(fn, *args)
     wall, out = C.median_time(compiled, *args, repeats=repeats)
     return np.asarray(out), wall, compile_s
 

@@ -69,6 +69,10 @@ def _dual_lift(fn, u, v, x, y):
     return first, fn(u, y) + d_first
 
 
+def _is_group_class(base) -> bool:
+    return isinstance(base, type) and issubclass(base, AbstractLieGroup)
+
+
 class AbstractBundle(eqx.Module):
     """A (co)tangent bundle of `base` made a Lie group."""
 
@@ -77,7 +81,7 @@ class AbstractBundle(eqx.Module):
     """True where the second factor is a group element (G×G)."""
 
     def __check_init__(self):
-        if not (isinstance(self.base, type) and issubclass(self.base, AbstractLieGroup)):
+        if not _is_group_class(self.base):
             raise TypeError(f"{type(self).__name__} needs a base group class such as SO3, got {self.base!r}.")
 
     @property
@@ -384,9 +388,9 @@ class Cotangent(AbstractSemidirect):
     trivialization: ClassVar[Literal["left"]] = "left"
 
     def __check_init__(self):
-        if not (isinstance(self.base, type) and issubclass(self.base, AbstractLieGroup)):
-            raise TypeError(f"Cotangent needs a base group class such as SO3, got {self.base!r}.")
-        if not self.base.bi_invariant_pairing:
+        # Runs before AbstractBundle's check, which refuses a base that is not
+        # a group class.
+        if _is_group_class(self.base) and not self.base.bi_invariant_pairing:
             raise TypeError(
                 f"Cotangent({self.base.__name__}) needs a base group whose algebra has a bi-invariant pairing "
                 "(g* ≅ g with Ad* = Ad⁻¹); this one does not declare it."

@@ -105,12 +105,7 @@ def integrate(
     `resume`.
     """
     _check_solver(solver)
-    y0 = solver.bundle.check(y0)
-    dtype = jnp.result_type(*jax.tree.leaves(y0))
-    t0 = jnp.asarray(t0, dtype)
-    dt = _checked_dt(dt, dtype)
-    args = _check_args(args)
-    solver.check_vector_field(vector_field, t0, y0, args)
+    y0, t0, dt, args = _checked_start(solver, vector_field, y0, t0, dt, args)
     guesses = solver.initial_guesses(vector_field, t0, y0, args)
     start = Continuation(y0, t0, dt, jnp.array(0, jnp.int32), guesses)
     return _run(solver, vector_field, start, num_steps, args, save_every, throw)
@@ -147,12 +142,8 @@ def resume(
         raise TypeError(
             f"continuation must be a Trajectory's `continuation`, got {type(continuation).__name__}; to start from a state, use integrate."
         )
-    y = solver.bundle.check(continuation.y)
-    dtype = jnp.result_type(*jax.tree.leaves(y))
-    dt = _checked_dt(continuation.dt, dtype)
-    args = _check_args(args)
-    t = continuation.t0 + continuation.steps_done * dt
-    solver.check_vector_field(vector_field, t, y, args)
+    c = continuation
+    y, t, dt, args = _checked_start(solver, vector_field, c.y, c.t0 + c.steps_done * c.dt, c.dt, args)
     expected = jax.tree.structure(eqx.filter_eval_shape(solver.initial_guesses, vector_field, t, y, args))
     if jax.tree.structure(continuation.guesses) != expected:
         raise TypeError("the continuation comes from another method (its carried guesses have another structure).")
@@ -163,6 +154,19 @@ def resume(
 def _check_solver(solver) -> None:
     if not isinstance(solver, AbstractMethod):
         raise TypeError(f"solver must be a PRKMK method (or a composition of them), got {type(solver).__name__}.")
+
+
+def _checked_start(solver, vector_field, y, t, dt, args):
+    """The checks both entry points make before a run: the state (static and
+    run-time), dt, args and the vector field's output at the start time t,
+    with t and dt in the state's dtype. Returns (y, t, dt, args)."""
+    y = solver.bundle.check(y)
+    dtype = jnp.result_type(*jax.tree.leaves(y))
+    t = jnp.asarray(t, dtype)
+    dt = _checked_dt(dt, dtype)
+    args = _check_args(args)
+    solver.check_vector_field(vector_field, t, y, args)
+    return y, t, dt, args
 
 
 def _checked_dt(dt, dtype) -> Array:

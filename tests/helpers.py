@@ -125,6 +125,19 @@ def empirical_order(solver: pk.PRKMK, t_end=2.0, steps=(10, 20, 40, 80), seed=0,
     return slope, np.asarray(errs)
 
 
+def assert_generator_matches_embedding(scene, t, y, args, atol=1e-13):
+    """d/ds of y·exp(s(ξ, η)) at s = 0, through the bundle's own product and
+    exp (`jax.jvp`), equals the scene's embedding field at (t, y): the two
+    ways the scene states its equations agree."""
+    xi, eta = scene(t, y, args)
+
+    def moved(s):
+        return scene.to_embedding(scene.bundle.multiply(y, scene.bundle.exp((s * xi, s * eta))))
+
+    _, velocity = jax.jvp(moved, (0.0,), (1.0,))
+    np.testing.assert_allclose(velocity, scene.embedding_field(t, scene.to_embedding(y), args), atol=atol)
+
+
 def max_leaf_difference(a, b) -> float:
     """max |a − b| over the entries of two pytrees of the same structure."""
     return max(float(jnp.max(jnp.abs(x - y))) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))

@@ -116,9 +116,11 @@ class SOn(AbstractQuadraticGroup):
         c = jnp.clip(c, -1.0, 1.0)
         one_minus = 1.0 - c
         small = one_minus < 1e-6
-        safe = jnp.where(small | (c < -0.9), 0.5, c)
+        safe = jnp.where(small, 0.5, c)
         # arccos(c)/sin(arccos c); near c = 1: 1 + (1 − c)/3 + 2(1 − c)²/15.
-        g = jnp.where(small, 1.0 + one_minus / 3 + 2 * one_minus**2 / 15, jnp.arccos(safe) / jnp.sqrt(1.0 - safe**2))
+        # (Near c = −1 it grows without bound; the plane of such an angle is
+        # handled below.)
+        g = jnp.where(small, 1.0 + one_minus / 3 + 2 * one_minus**2 / 15, jnp.arccos(safe) / jnp.sqrt(jnp.maximum(1.0 - safe**2, 1e-300)))
         # The plane of the largest angle (eigenvalues 0 and 1, ascending).
         a, b = w[..., :, 0], w[..., :, 1]
         sin_ab = jnp.einsum("...i,...ij,...j->...", b, skew, a)
@@ -128,8 +130,7 @@ class SOn(AbstractQuadraticGroup):
         plane = (sign * theta)[..., None, None] * (b[..., :, None] * a[..., None, :] - a[..., :, None] * b[..., None, :])
         gap = c[..., 2] - c[..., 1] if n > 2 else jnp.ones_like(cos_ab)
         near_pi = (c[..., 0] < -0.9) & (gap > 1e-4)
-        g_far = jnp.where(c < -0.9, jnp.arccos(c) / jnp.sqrt(jnp.maximum(1.0 - c**2, 1e-300)), g)
-        keep = jnp.where(near_pi[..., None] & (jnp.arange(n) < 2), 0.0, g_far)
+        keep = jnp.where(near_pi[..., None] & (jnp.arange(n) < 2), 0.0, g)
         out = ((w * keep[..., None, :]) @ _transpose(w)) @ skew
         general = 0.5 * (out - _transpose(out)) + jnp.where(near_pi[..., None, None], plane, 0.0)
         series = _log_series_factor(distance) @ skew

@@ -97,8 +97,14 @@ def embedding_field(t, z: Float[Array, "12"], inertia: Float[Array, "3"] | Float
     if z.shape != (12,):
         raise ValueError(f"the embedded state is (Q row-major, Π) of shape (12,), got {z.shape}.")
     q, pi = z[:9].reshape(3, 3), z[9:]
-    omega = pi / inertia if inertia.ndim == 1 else jnp.linalg.solve(inertia, pi)
+    omega = _body_rate(pi, inertia)
     return jnp.concatenate([(q @ hat(omega)).ravel(), jnp.cross(pi, omega)])
+
+
+def _body_rate(pi, inertia):
+    """Ω = I⁻¹Π for principal moments (3,) or a full tensor (3, 3)."""
+    inertia = jnp.asarray(inertia)
+    return pi / inertia if inertia.ndim == 1 else jnp.linalg.solve(inertia, pi)
 
 
 def _commutator_or_cross(a, b):
@@ -242,11 +248,6 @@ class FreeRigidBody(AbstractScene):
 
     def embedding_field(self, t, z, inertia):
         return embedding_field(t, z, inertia)
-
-
-def _body_rate(pi, inertia):
-    inertia = jnp.asarray(inertia)
-    return pi / inertia if inertia.ndim == 1 else jnp.linalg.solve(inertia, pi)
 
 
 class SymmetricRigidBody(AbstractScene):
