@@ -11,11 +11,13 @@ Two forms of the vector field `f(t, y, args) -> (ξ, η)` are supported:
   U' = df⁻¹_{−U}(ξ, η) and yₙ₊₁ = yₙ·f(Uₙ₊₁). For exp this is the series
   Σ B_k/k! (−ad_U)^k, the left-trivialised dexp⁻¹ of Table 2.2.
 
-Stage slopes (K, L) are found block by block: the stage dependency pattern
-of the two A matrices splits into consecutive blocks; a block that depends
-only on earlier stages is evaluated directly, an implicit block is solved by
-fixed-point iteration (or any optimistix root finder) to `rtol`/`atol` within
-`max_iterations`. Non-convergence is returned as a `diffrax.RESULTS` value.
+Stage slopes (K, L) are found in the order `stage_plan.plan_stages` gives:
+from the tableau's two A matrices and what each slope depends on (read from
+the traced program of a stage, `stage_plan.stage_dependence`), strongly
+connected sets of slopes are solved by fixed-point iteration (or any
+optimistix root finder) to `rtol`/`atol` within `max_iterations`, and the
+others are evaluated directly. Non-convergence is returned as a
+`diffrax.RESULTS` value.
 """
 
 import functools
@@ -33,28 +35,10 @@ from jaxtyping import Array, PyTree
 from .bundles import AbstractBundle, AlgebraPair, BundleElement
 from .coordinates import AbstractCoordinates, Exp
 from .method import RESULTS, AbstractMethod, VectorField, first_failure, flag_nonfinite
+from .stage_plan import COUPLED, Explicit, plan_stages, stage_dependence
 from .tableaus import PartitionedTableau, stormer_verlet
 
 STAGE_SLOPES_NAME = "prkmk_stage_slopes"
-
-
-def stage_blocks(tableau: PartitionedTableau) -> list[tuple[tuple[int, ...], bool]]:
-    """Consecutive stage blocks and whether each is implicit.
-
-    A cut before stage k is allowed when no stage i < k depends on a stage
-    j ≥ k in either A matrix; a block is implicit when a stage in it depends
-    on itself or on a later stage of the block.
-    """
-    dep = (tableau.a_first != 0) | (tableau.a_second != 0)
-    s = tableau.num_stages
-    blocks, start = [], 0
-    for k in range(1, s + 1):
-        if k == s or not dep[:k, k:].any():
-            idx = tuple(range(start, k))
-            sub = dep[np.ix_(idx, idx)]
-            blocks.append((idx, bool(np.triu(sub).any())))
-            start = k
-    return blocks
 
 
 class PRKMK(AbstractMethod):
@@ -74,6 +58,15 @@ class PRKMK(AbstractMethod):
       converges when h times the field's Lipschitz constant is below 1 and
       slows down as it approaches 1 (symmetric rigid body at h = 0.1: ~94
       iterations a step, Newton: 4).
+    - `coupling`: how the step decides which stage slopes it solves for
+      together. `"traced"` (default) reads from the traced program of one
+      stage which slopes each depends on (`stage_plan`): a field with η ≡ 0
+      (the free rigid body) has L ≡ 0, so Störmer–Verlet's first stage is
+      explicit; a separable field (4.15) on `DirectProduct` or `Cartesian`
+      with df⁻¹ = I makes symplectic Euler and Störmer–Verlet explicit.
+      `"tableau"` assumes every slope depends on the whole stage point, so
+      the A matrices alone decide. Both give the same trajectory to the
+      stage tolerance.
     """
 
     bundle: AbstractBundle
@@ -84,6 +77,7 @@ class PRKMK(AbstractMethod):
     atol: float | None = eqx.field(static=True, default=None)
     max_iterations: int = eqx.field(static=True, default=100)
     root_finder: Any = eqx.field(static=True, default=None)
+    coupling: Literal["traced", "tableau"] = eqx.field(static=True, default="traced")
 
     def __check_init__(self):
         if not isinstance(self.bundle, AbstractBundle):
@@ -104,6 +98,8 @@ class PRKMK(AbstractMethod):
             raise ValueError(f"max_iterations must be a positive int, got {self.max_iterations!r}.")
         if self.root_finder is not None and not isinstance(self.root_finder, (optx.AbstractFixedPointSolver, optx.AbstractRootFinder)):
             raise TypeError("root_finder must be an optimistix fixed-point solver or root finder.")
+        if self.coupling not in ("traced", "tableau"):
+            raise ValueError(f"coupling must be 'traced' (read from the field's program) or 'tableau', got {self.coupling!r}.")
         self.coordinates.check_bundle(self.bundle)
 
     @property
@@ -180,7 +176,9 @@ class PRKMK(AbstractMethod):
         def stage_slope(i, first, second):
             # U_i = h (Σ_j a¹_ij K_j, Σ_j a²_ij L_j), Y_i = f(U_i)⊙yₙ, slope_i = df⁻¹(X_i).
             # The sums run over the tableau's nonzero entries only (static
-            # numbers), so XLA fuses them with the stage's arithmetic.
+            # numbers), so XLA fuses them with the stage's arithmetic. A slope
+            # still None is zero or, by the plan, one this stage's wanted
+            # slopes do not depend on.
             u = static_combination(dt, tab.a_first[i], first, zeros[0])
             v = static_combination(dt, tab.a_second[i], second, zeros[1])
             tt = t + float(tab.c_first[i]) * dt
@@ -189,41 +187,59 @@ class PRKMK(AbstractMethod):
             U = (zeros[0] if u is None else u, zeros[1] if v is None else v)
             return self.slope(U, field(tt, self.apply_increment(U, y)))
 
-        first: list = [None] * tab.num_stages
-        second: list = [None] * tab.num_stages
+        slopes: list[list] = [[None] * tab.num_stages, [None] * tab.num_stages]
         result = RESULTS.successful
         iterations = jnp.array(0, jnp.int32)
-        initial_guess = None
-        for idx, implicit in stage_blocks(tab):
-            if not implicit:
-                for i in idx:
-                    first[i], second[i] = stage_slope(i, first, second)
+        start = None
+        for part in self.stage_plan(vector_field, t, y, dt, args):
+            if isinstance(part, Explicit):
+                pair = stage_slope(part.stage, *slopes)
+                for c in part.components:
+                    slopes[c][part.stage] = pair[c]
                 continue
-            if initial_guess is None:
-                # df⁻¹_0 = I: the slope at U = 0 is the field at yₙ.
-                initial_guess = field_at_yn()
 
-            def block_slopes(block, idx=idx):
-                trial_first, trial_second = list(first), list(second)
-                for i, (k_i, l_i) in zip(idx, block):
-                    trial_first[i], trial_second[i] = k_i, l_i
-                return tuple(stage_slope(i, trial_first, trial_second) for i in idx)
+            def block_slopes(block, part=part):
+                trial = [list(slopes[0]), list(slopes[1])]
+                for (i, c), value in zip(part.slopes, block):
+                    trial[c][i] = value
+                pairs = {i: stage_slope(i, *trial) for i in part.stages}
+                return tuple(pairs[i][c] for i, c in part.slopes)
 
             if stage_guesses is None:
-                guess = tuple(initial_guess for _ in idx)
+                # df⁻¹_0 = I: the slope at U = 0 is the field at yₙ.
+                start = field_at_yn() if start is None else start
+                guess = tuple(start[c] for _, c in part.slopes)
             else:
-                guess = tuple(tuple(jnp.asarray(x, dtype) for x in stage_guesses[i]) for i in idx)
+                guess = tuple(jnp.asarray(stage_guesses[i][c], dtype) for i, c in part.slopes)
             block, block_result, n = self.solve_implicit(block_slopes, guess, dtype)
             result = first_failure(result, block_result)
             iterations = iterations + n
-            for i, (k_i, l_i) in zip(idx, block):
-                first[i], second[i] = k_i, l_i
+            for (i, c), value in zip(part.slopes, block):
+                slopes[c][i] = value
+        # A slope the plan never computed is identically zero (L when η ≡ 0).
+        first = [zeros[0] if k is None else k for k in slopes[0]]
+        second = [zeros[1] if w is None else w for w in slopes[1]]
 
-        u_next = static_combination(dt, tab.b_first, first, zeros[0])
-        v_next = static_combination(dt, tab.b_second, second, zeros[1])
+        u_next = static_combination(dt, tab.b_first, slopes[0], zeros[0])
+        v_next = static_combination(dt, tab.b_second, slopes[1], zeros[1])
         u_next = (zeros[0] if u_next is None else u_next, zeros[1] if v_next is None else v_next)
         y_next = self.advance(u_next, y)
         return y_next, u_next, flag_nonfinite(result, y_next), iterations, tuple(zip(first, second))
+
+    def stage_plan(self, vector_field: VectorField, t: Array, y: BundleElement, dt: Array, args: PyTree = None):
+        """The order in which this step finds its stage slopes at (t, y)
+        (`stage_plan.plan_stages`; trace-time, from the field's program
+        when `coupling="traced"`)."""
+        if self.coupling == "tableau":
+            return plan_stages(self.tableau, COUPLED)
+        zeros = self.bundle.algebra_zeros(y)
+
+        def stage(u, v):
+            U = (u, v)
+            return self.slope(U, self.generator(vector_field, t, self.apply_increment(U, y), args))
+
+        dependence = stage_dependence(stage, lambda state: self.generator(vector_field, t, state, args), zeros, y)
+        return plan_stages(self.tableau, dependence)
 
     def solve_implicit(self, block_slopes, guess, dtype):
         """Solve block_slopes(K) = K for the slopes K of an implicit block
@@ -263,11 +279,12 @@ def _check_pairs(name, pairs, zeros, count=None):
 
 
 def static_combination(dt, coefficients, slopes, zero):
-    """dt·Σ_j coefficients[j]·slopes[j] over the nonzero (static) coefficients,
-    or None when all are zero."""
+    """dt·Σ_j coefficients[j]·slopes[j] over the nonzero (static) coefficients
+    and the slopes that are not None (zero, or not needed: see `stage_plan`),
+    or None when no term is left."""
     acc = None
     for c, slope in zip(coefficients, slopes):
-        if c == 0:
+        if c == 0 or slope is None:
             continue
         term = slope if c == 1 else jnp.asarray(c, zero.dtype) * slope
         acc = term if acc is None else acc + term

@@ -47,12 +47,14 @@ def test_bad_tableaus():
         PartitionedTableau("x", np.array([[1.0]]), one, one, np.array([[0.0]]), one, np.array([0.0]), 0)
 
 
-def test_stage_blocks():
-    from prkmk_jax.step import stage_blocks
+def test_plan_of_the_tableau_alone():
+    """With every slope depending on the whole stage point, the plan is the
+    tableau's own block structure."""
+    from prkmk_jax.stage_plan import COUPLED, Explicit, Implicit, plan_stages
 
-    assert stage_blocks(pk.symplectic_euler) == [((0,), True)]
-    assert stage_blocks(pk.stormer_verlet) == [((0,), True), ((1,), True)]
-    assert stage_blocks(pk.lobatto_iiia_iiib4) == [((0, 1, 2), True)]
+    assert plan_stages(pk.symplectic_euler, COUPLED) == (Implicit(((0, 0), (0, 1))),)
+    assert plan_stages(pk.stormer_verlet, COUPLED) == (Implicit(((0, 0), (0, 1))), Implicit(((1, 0), (1, 1))))
+    assert plan_stages(pk.lobatto_iiia_iiib4, COUPLED) == (Implicit(tuple((i, c) for i in range(3) for c in (0, 1))),)
     a = np.array([[0, 0], [1.0, 0]])
     heun = PartitionedTableau("heun", a, np.array([0.5, 0.5]), np.array([0, 1.0]), a, np.array([0.5, 0.5]), np.array([0, 1.0]), 2)
-    assert stage_blocks(heun) == [((0,), False), ((1,), False)]
+    assert plan_stages(heun, COUPLED) == (Explicit(0, (0, 1)), Explicit(1, (0, 1)))

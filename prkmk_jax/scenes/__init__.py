@@ -12,6 +12,7 @@ from .forced_body import (
     harmonic_torque as harmonic_torque,
 )
 from .heavy_top import HeavyTop as HeavyTop
+from .heavy_top import SphericalTop as SphericalTop
 from .heavy_top import TopParameters as TopParameters
 from .rigid_body import (
     PAPER_INERTIA as PAPER_INERTIA,
