@@ -13,6 +13,9 @@ from . import (
     scenes as scenes,
 )
 from . import (
+    stage_plan as stage_plan,
+)
+from . import (
     tableaus as tableaus,
 )
 from .batch import batch_sharding as batch_sharding
