@@ -19,7 +19,7 @@ from jaxtyping import PyTree
 BATCH_AXIS = "batch"
 
 
-def batch_sharding(devices: Sequence[jax.Device] | None = None) -> NamedSharding:
+def batch_sharding(devices: Sequence[jax.Device] | None = None) -> NamedSharding:  # pyright: ignore[reportInvalidTypeForm]  # jax.Device is an alias of the runtime's device class
     """Split the leading axis over `devices` (default: all of them)."""
     devices = list(jax.devices() if devices is None else devices)
     if not devices:
@@ -27,7 +27,7 @@ def batch_sharding(devices: Sequence[jax.Device] | None = None) -> NamedSharding
     return NamedSharding(Mesh(np.asarray(devices), (BATCH_AXIS,)), PartitionSpec(BATCH_AXIS))
 
 
-def shard_batch(batch: PyTree, devices: Sequence[jax.Device] | None = None) -> PyTree:
+def shard_batch(batch: PyTree, devices: Sequence[jax.Device] | None = None) -> PyTree:  # pyright: ignore[reportInvalidTypeForm]  # as above
     """Place every array leaf of `batch` with its leading (batch) axis split
     evenly over `devices`; the batch size must be a multiple of their number."""
     sharding = batch_sharding(devices)

@@ -35,7 +35,7 @@ so(3) but not on so(n), n ≥ 4 (see `paper_semidirect_dcayley_inv`).
 """
 
 import abc
-from typing import ClassVar, Literal
+from typing import ClassVar, Literal, cast
 
 import equinox as eqx
 import jax
@@ -88,6 +88,14 @@ class AbstractBundle(eqx.Module):
     def supports_cayley(self) -> bool:
         return issubclass(self.base, AbstractQuadraticGroup)
 
+    @property
+    def quadratic_base(self) -> type[AbstractQuadraticGroup]:
+        """`base`, for the Cayley maps, which exist on quadratic groups only."""
+        base = self.base
+        if not issubclass(base, AbstractQuadraticGroup):
+            raise TypeError(f"Cayley coordinates need a quadratic base group; {base.__name__} is not an AbstractQuadraticGroup.")
+        return base
+
     # --- element validation ----------------------------------------------------
     def check(self, y: BundleElement) -> BundleElement:
         """Static checks (types, shapes; `TypeError`/`ValueError`) and run-time
@@ -114,7 +122,8 @@ class AbstractBundle(eqx.Module):
         if self.fiber_is_group:
             fiber = y.fiber.check()
         else:
-            fiber = eqx.error_if(y.fiber, ~jnp.all(jnp.isfinite(y.fiber)), "bundle fiber is not finite (NaN or inf).")
+            fiber_array = cast(Array, y.fiber)  # not a group element: checked above
+            fiber = eqx.error_if(fiber_array, ~jnp.all(jnp.isfinite(fiber_array)), "bundle fiber is not finite (NaN or inf).")
         return BundleElement(base, fiber)
 
     def project(self, y: BundleElement) -> BundleElement:
@@ -210,13 +219,13 @@ class DirectProduct(AbstractBundle):
         return self.base.dexp_inv(U[0], X[0]), X[1]
 
     def cayley(self, U):
-        return BundleElement(self.base.cayley(U[0]), U[1])
+        return BundleElement(self.quadratic_base.cayley(U[0]), U[1])
 
     def cayley_inverse(self, a):
-        return a.base.cayley_inverse(), a.fiber
+        return _quadratic(a.base).cayley_inverse(), a.fiber
 
     def dcayley_inv(self, U, X):
-        return self.base.dcayley_inv(U[0], X[0]), X[1]
+        return self.quadratic_base.dcayley_inv(U[0], X[0]), X[1]
 
     def exp_multiply(self, U, y, form):
         return _multiply_in_form(self, self.exp(U), y, form)
@@ -250,13 +259,13 @@ class Cartesian(AbstractBundle):
         return self.base.dexp_inv(U[0], X[0]), self.base.dexp_inv(U[1], X[1])
 
     def cayley(self, U):
-        return BundleElement(self.base.cayley(U[0]), self.base.cayley(U[1]))
+        return BundleElement(self.quadratic_base.cayley(U[0]), self.quadratic_base.cayley(U[1]))
 
     def cayley_inverse(self, a):
-        return a.base.cayley_inverse(), a.fiber.cayley_inverse()
+        return _quadratic(a.base).cayley_inverse(), _quadratic(a.fiber).cayley_inverse()
 
     def dcayley_inv(self, U, X):
-        return self.base.dcayley_inv(U[0], X[0]), self.base.dcayley_inv(U[1], X[1])
+        return self.quadratic_base.dcayley_inv(U[0], X[0]), self.quadratic_base.dcayley_inv(U[1], X[1])
 
     def exp_multiply(self, U, y, form):
         return _multiply_in_form(self, self.exp(U), y, form)
@@ -315,11 +324,11 @@ class AbstractSemidirect(AbstractBundle):
 
     def cayley(self, U):
         u, v = U
-        return BundleElement(self.base.cayley(u), self._cayley_fiber(u, v))
+        return BundleElement(self.quadratic_base.cayley(u), self._cayley_fiber(u, v))
 
     def cayley_inverse(self, a):
         # The fiber of cay(u, v) is (I + α ad_u)⁻¹ v with α = ±½ (`_cayley_fiber`).
-        u = a.base.cayley_inverse()
+        u = _quadratic(a.base).cayley_inverse()
         return u, a.fiber - 0.5 * self._sign() * self.base.bracket(u, a.fiber)
 
     def dcayley_inv(self, U, X):
@@ -330,9 +339,9 @@ class AbstractSemidirect(AbstractBundle):
         (u, v), (x, y) = U, X
         br = self.base.bracket
         w = self._cayley_fiber(u, v)
-        x_v = self.base.dcayley_inv(u, x)
+        x_v = self.quadratic_base.dcayley_inv(u, x)
         if self.trivialization == "left":
-            z = self.base.cayley(-u).adjoint(y)  # cay(−u) = cay(u)⁻¹
+            z = self.quadratic_base.cayley(-u).adjoint(y)  # cay(−u) = cay(u)⁻¹
             y_v = z + 0.5 * br(u, z) + 0.5 * br(x_v, w)
         else:
             z = y + br(x, w)
@@ -347,7 +356,7 @@ class AbstractSemidirect(AbstractBundle):
 
     def cayley_multiply(self, U, y, form):
         u, v = U
-        base = self.base
+        base = self.quadratic_base
         fiber_part = self._cayley_fiber(u, v)
         return self._multiply_increment(y, base.cayley(u), fiber_part, lambda x, sign: base.cayley_adjoint(sign * u, x), form)
 
@@ -385,7 +394,7 @@ class Cotangent(AbstractSemidirect):
     """
 
     base: type[AbstractLieGroup] = eqx.field(static=True)
-    trivialization: ClassVar[Literal["left"]] = "left"
+    trivialization: ClassVar[Literal["left"]] = "left"  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox lets a ClassVar implement an AbstractVar
 
     def __check_init__(self):
         # Runs before AbstractBundle's check, which refuses a base that is not
@@ -397,6 +406,13 @@ class Cotangent(AbstractSemidirect):
             )
 
 
+def _quadratic(element: AbstractLieGroup) -> AbstractQuadraticGroup:
+    """`element`, for the inverse Cayley map (quadratic groups only)."""
+    if not isinstance(element, AbstractQuadraticGroup):
+        raise TypeError(f"the inverse Cayley map needs an element of a quadratic group, got {type(element).__name__}.")
+    return element
+
+
 def paper_semidirect_dcayley_inv(bundle: AbstractSemidirect, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
     """The §4.4 formula as printed: (dcay⁻¹_u x, y − ½([u,y] + [v,x]) − ¼[u,[x,v]]).
 
@@ -406,4 +422,4 @@ def paper_semidirect_dcayley_inv(bundle: AbstractSemidirect, U: AlgebraPair, X: 
     """
     (u, v), (x, y) = U, X
     br = bundle.base.bracket
-    return bundle.base.dcayley_inv(u, x), y - 0.5 * (br(u, y) + br(v, x)) - 0.25 * br(u, br(x, v))
+    return bundle.quadratic_base.dcayley_inv(u, x), y - 0.5 * (br(u, y) + br(v, x)) - 0.25 * br(u, br(x, v))

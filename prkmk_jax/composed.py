@@ -36,15 +36,15 @@ class AbstractMadeOfSteps(AbstractMethod):
     method: eqx.AbstractVar[AbstractMethod]
 
     @property
-    def bundle(self):
+    def bundle(self):  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a property implements an AbstractVar
         return self.method.bundle
 
     @property
-    def coordinates(self):
+    def coordinates(self):  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a property implements an AbstractVar
         return self.method.coordinates
 
     @property
-    def form(self):
+    def form(self):  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a property implements an AbstractVar
         return self.method.form
 
 
@@ -61,7 +61,7 @@ class Adjoint(AbstractMadeOfSteps):
     this is the PRK method of the adjoint tableau.
     """
 
-    method: PRKMK
+    method: PRKMK  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a field narrows an AbstractVar's type
 
     def __check_init__(self):
         if not isinstance(self.method, PRKMK):
@@ -118,7 +118,7 @@ class Symmetrized(AbstractMadeOfSteps):
     (p even) or p + 1 (p odd: symplectic Euler gives order 2), and a
     symmetric base for `Composition` where Φ itself is not symmetric."""
 
-    method: PRKMK
+    method: PRKMK  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a field narrows an AbstractVar's type
 
     def __check_init__(self):
         if not isinstance(self.method, PRKMK):
@@ -126,7 +126,7 @@ class Symmetrized(AbstractMadeOfSteps):
 
     @property
     def adjoint(self) -> Adjoint:
-        return Adjoint(self.method)
+        return Adjoint(self.method)  # pyright: ignore[reportCallIssue]  # equinox: AbstractVars implemented by properties are not __init__ fields
 
     @property
     def order(self) -> int:
@@ -217,6 +217,7 @@ def symmetry_defect(
     """max |Φ_{−h}(Φ_h(y)) − y| over the entries of the state (in its matrix
     or vector embedding): zero up to round-off and the stage tolerance for a
     symmetric method, O(h^{p+1}) for a non-symmetric one of order p."""
+    t, dt = jnp.asarray(t), jnp.asarray(dt)
     y_forward, _, _ = method.step(vector_field, t, y, dt, args)
-    y_back, _, _ = method.step(vector_field, jnp.asarray(t) + dt, y_forward, -jnp.asarray(dt), args)
+    y_back, _, _ = method.step(vector_field, t + dt, y_forward, -dt, args)
     return functools.reduce(jnp.maximum, [jnp.max(jnp.abs(a - b)) for a, b in zip(jax.tree.leaves(y_back), jax.tree.leaves(y))])

@@ -4,6 +4,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import Tracer
 from jaxtyping import Array, PyTree
 
 from .bundles import BundleElement
@@ -65,7 +66,7 @@ def _check_args(args):
 def _static_count(name, value) -> int:
     """A step count as a Python int (NumPy integers accepted): it sets the
     scan's length, so it cannot be traced."""
-    if isinstance(value, jax.core.Tracer):
+    if isinstance(value, Tracer):
         raise ValueError(
             f"{name} must be a static Python int, got a traced value; under jax.jit pass it as a static "
             f"argument (static_argnums / static_argnames, or eqx.filter_jit with a Python int)."

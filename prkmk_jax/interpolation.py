@@ -20,8 +20,8 @@ from .method import AbstractMethod
 class OnGroupInterpolation(diffrax.AbstractLocalInterpolation):
     """Cubic Hermite interpolation in the algebra, mapped to the group."""
 
-    t0: Array
-    t1: Array
+    t0: Array  # pyright: ignore[reportIncompatibleVariableOverride]  # diffrax declares t0, t1 abstract; fields implement them
+    t1: Array  # pyright: ignore[reportIncompatibleVariableOverride]
     y0: BundleElement
     increment: AlgebraPair
     slope0: AlgebraPair
@@ -39,5 +39,5 @@ class OnGroupInterpolation(diffrax.AbstractLocalInterpolation):
         h10 = theta**3 - 2 * theta**2 + theta
         h01 = -2 * theta**3 + 3 * theta**2
         h11 = theta**3 - theta**2
-        u = tuple((h10 * h) * s0 + h01 * big + (h11 * h) * s1 for s0, big, s1 in zip(self.slope0, self.increment, self.slope1))
-        return self.method.apply_increment(u, self.y0)
+        u, v = ((h10 * h) * s0 + h01 * big + (h11 * h) * s1 for s0, big, s1 in zip(self.slope0, self.increment, self.slope1))
+        return self.method.apply_increment((jnp.asarray(u), jnp.asarray(v)), self.y0)

@@ -46,7 +46,7 @@ def first_failure(result: RESULTS, new: RESULTS) -> RESULTS:
 def flag_nonfinite(result: RESULTS, y) -> RESULTS:
     """`result`, or `RESULTS.nonfinite` if it was a success and `y` holds a NaN or inf."""
     finite = jnp.all(jnp.array([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(y)]))
-    return first_failure(result, RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite))
+    return first_failure(result, RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite))  # pyright: ignore[reportArgumentType]  # an Enumeration member is typed as its Literal
 
 
 class AbstractMethod(eqx.Module):
@@ -124,7 +124,8 @@ class AbstractMethod(eqx.Module):
         """(ξ, η) = vector_field(t, y, args) in the state's dtype, whatever
         precision the user's field returns."""
         zeros = self.bundle.algebra_zeros(y)
-        return tuple(jnp.asarray(x, z.dtype) for x, z in zip(vector_field(t, y, args), zeros))
+        xi, eta = vector_field(t, y, args)
+        return jnp.asarray(xi, zeros[0].dtype), jnp.asarray(eta, zeros[1].dtype)
 
     def check_vector_field(self, vector_field: VectorField, t, y: BundleElement, args) -> None:
         """Trace-time check that `vector_field(t, y, args)` returns a pair

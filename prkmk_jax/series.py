@@ -14,11 +14,14 @@ from collections.abc import Callable
 from fractions import Fraction
 from functools import cache
 from math import comb, factorial
+from typing import TypeVar
 
 import jax
 import jax.numpy as jnp
 
-Bracket = Callable
+Algebra = TypeVar("Algebra")
+"""An algebra element: an array of a base group's algebra, or a pair (ξ, η)
+of arrays of a bundle's."""
 
 
 @cache
@@ -39,7 +42,7 @@ def _axpy(alpha, x, y):
     return jax.tree.map(lambda xi, yi: yi + jnp.asarray(alpha, dtype=xi.dtype) * xi, x, y)
 
 
-def dexp_inv_series(bracket: Bracket, u, x, order: int):
+def dexp_inv_series(bracket: Callable[[Algebra, Algebra], Algebra], u: Algebra, x: Algebra, order: int) -> Algebra:
     """Σ_{k=0}^{order} B_k/k! ad_u^k x (right-trivialised dexp_u⁻¹ truncated)."""
     if order < 0:
         raise ValueError(f"series order must be ≥ 0, got {order}.")
@@ -52,7 +55,7 @@ def dexp_inv_series(bracket: Bracket, u, x, order: int):
     return acc
 
 
-def dexp_series(bracket: Bracket, u, x, order: int):
+def dexp_series(bracket: Callable[[Algebra, Algebra], Algebra], u: Algebra, x: Algebra, order: int) -> Algebra:
     """Σ_{k=0}^{order} ad_u^k x/(k+1)! (right-trivialised dexp_u truncated)."""
     if order < 0:
         raise ValueError(f"series order must be ≥ 0, got {order}.")

@@ -146,7 +146,7 @@ class PRKMKSolver(diffrax.AbstractSolver):
         # attitude), and XLA would then drop those checks as dead code. A zero
         # that depends on every checked entry keeps them alive (XLA does not fold
         # 0·x for floats; x is finite once the checks have passed).
-        zero = sum(jnp.sum(leaf) for leaf in jax.tree.leaves(y0)) * 0
+        zero = jnp.asarray(sum(jnp.sum(leaf) for leaf in jax.tree.leaves(y0))) * 0
         return jax.tree.map(lambda x: x + zero.astype(x.dtype), carried)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):

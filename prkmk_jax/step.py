@@ -312,7 +312,7 @@ def _fixed_point_iteration(fn, guess, rtol, atol, max_iterations, dtype):
     settings = _IterationSettings(float(rtol), float(atol), int(max_iterations), jnp.dtype(dtype))
     dynamic, static = eqx.partition(closed_fn, eqx.is_array)
     z, error, n = _solve_fixed_point(settings, static, guess, dynamic)
-    result = RESULTS.where(error < 1, RESULTS.successful, RESULTS.nonlinear_max_steps_reached)
+    result = RESULTS.where(error < 1, RESULTS.successful, RESULTS.nonlinear_max_steps_reached)  # pyright: ignore[reportArgumentType]  # an Enumeration member is typed as its Literal
     return z, result, n
 
 

@@ -156,14 +156,14 @@ class SO3(AbstractQuadraticGroup):
         )
         return factor[..., None] * v
 
-    def multiply(self, other: Self) -> Self:
-        return SO3(self.matrix @ other.matrix)
+    def multiply(self, other: Self) -> Self:  # pyright: ignore[reportIncompatibleMethodOverride]  # pyright binds the base's Self in a parameter to the base class
+        return type(self)(self.matrix @ other.matrix)
 
     def inverse(self) -> Self:
-        return SO3(jnp.swapaxes(self.matrix, -1, -2))
+        return type(self)(jnp.swapaxes(self.matrix, -1, -2))
 
     def identity_like(self) -> Self:
-        return SO3(jnp.broadcast_to(jnp.eye(3, dtype=self.matrix.dtype), self.matrix.shape))
+        return type(self)(jnp.broadcast_to(jnp.eye(3, dtype=self.matrix.dtype), self.matrix.shape))
 
     def adjoint(self, u: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3"]:
         """Ad_R u = R u."""
@@ -173,13 +173,13 @@ class SO3(AbstractQuadraticGroup):
         return jnp.zeros(self.matrix.shape[:-1], self.matrix.dtype)
 
     def check(self) -> Self:
-        return SO3(checked_rotation(self.matrix, "SO3"))
+        return type(self)(checked_rotation(self.matrix, "SO3"))
 
     def project(self) -> Self:
-        return SO3(nearest_rotation(self.matrix))
+        return type(self)(nearest_rotation(self.matrix))
 
     def renormalized(self) -> Self:
-        return SO3(bjorck_step(self.matrix))
+        return type(self)(bjorck_step(self.matrix))
 
     # --- algebra ---------------------------------------------------------------
     @classmethod

@@ -137,14 +137,14 @@ class SOn(AbstractQuadraticGroup):
         series = 0.5 * (series - _transpose(series))
         return jnp.where(near_identity[..., None, None], series, general)
 
-    def multiply(self, other: Self) -> Self:
-        return SOn(self.matrix @ other.matrix)
+    def multiply(self, other: Self) -> Self:  # pyright: ignore[reportIncompatibleMethodOverride]  # pyright binds the base's Self in a parameter to the base class
+        return type(self)(self.matrix @ other.matrix)
 
     def inverse(self) -> Self:
-        return SOn(_transpose(self.matrix))
+        return type(self)(_transpose(self.matrix))
 
     def identity_like(self) -> Self:
-        return SOn(jnp.broadcast_to(_eye_like(self.matrix), self.matrix.shape))
+        return type(self)(jnp.broadcast_to(_eye_like(self.matrix), self.matrix.shape))
 
     def adjoint(self, u):
         return self.matrix @ u @ _transpose(self.matrix)
@@ -153,13 +153,13 @@ class SOn(AbstractQuadraticGroup):
         return jnp.zeros_like(self.matrix)
 
     def check(self) -> Self:
-        return SOn(checked_rotation(self.matrix, "SOn"))
+        return type(self)(checked_rotation(self.matrix, "SOn"))
 
     def project(self) -> Self:
-        return SOn(nearest_rotation(self.matrix))
+        return type(self)(nearest_rotation(self.matrix))
 
     def renormalized(self) -> Self:
-        return SOn(bjorck_step(self.matrix))
+        return type(self)(bjorck_step(self.matrix))
 
     @classmethod
     def bracket(cls, u, v):

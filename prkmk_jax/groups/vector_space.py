@@ -33,14 +33,14 @@ class VectorSpace(AbstractQuadraticGroup):
     def log(self):
         return self.value
 
-    def multiply(self, other: Self) -> Self:
-        return VectorSpace(self.value + other.value)
+    def multiply(self, other: Self) -> Self:  # pyright: ignore[reportIncompatibleMethodOverride]  # pyright binds the base's Self in a parameter to the base class
+        return type(self)(self.value + other.value)
 
     def inverse(self) -> Self:
-        return VectorSpace(-self.value)
+        return type(self)(-self.value)
 
     def identity_like(self) -> Self:
-        return VectorSpace(jnp.zeros_like(self.value))
+        return type(self)(jnp.zeros_like(self.value))
 
     def adjoint(self, u):
         return u
@@ -55,7 +55,7 @@ class VectorSpace(AbstractQuadraticGroup):
         return self
 
     def check(self) -> Self:
-        return VectorSpace(eqx.error_if(self.value, ~jnp.all(jnp.isfinite(self.value)), "VectorSpace element is not finite (NaN or inf)."))
+        return type(self)(eqx.error_if(self.value, ~jnp.all(jnp.isfinite(self.value)), "VectorSpace element is not finite (NaN or inf)."))
 
     @classmethod
     def bracket(cls, u, v):

@@ -15,7 +15,7 @@ from jaxtyping import Array, Float, PyTree
 
 from ..bundles import AbstractBundle, AlgebraPair, BundleElement, Cotangent
 from ..coordinates import AbstractCoordinates, Exp
-from ..groups import SO3
+from ..groups import SO3, SOn
 from ..step import PRKMK
 from ..tableaus import PartitionedTableau
 
@@ -37,7 +37,7 @@ class AbstractScene(eqx.Module):
         """The generator (ξ, η) at (t, y)."""
 
     @abc.abstractmethod
-    def invariants(self, y: BundleElement, args: PyTree) -> dict[str, Array]:
+    def invariants(self, y: BundleElement, args: PyTree, /) -> dict[str, Array]:
         """The quantities the exact flow keeps, for states with any leading
         axes (a trajectory): name → values."""
 
@@ -46,7 +46,7 @@ class AbstractScene(eqx.Module):
         """The state as a flat vector of the Euclidean embedding."""
 
     @abc.abstractmethod
-    def embedding_field(self, t: Array, z: Float[Array, " d"], args: PyTree) -> Float[Array, " d"]:
+    def embedding_field(self, t: Array, z: Float[Array, " d"], args: PyTree, /) -> Float[Array, " d"]:
         """dz/dt on the embedding, for Euclidean solvers (`diffrax.ODETerm`).
         Nothing there keeps the state on the group: that is what such a
         comparison measures."""
@@ -54,12 +54,20 @@ class AbstractScene(eqx.Module):
     def method(self, tableau: PartitionedTableau, coordinates: AbstractCoordinates | None = None, **options) -> PRKMK:
         """The PRKMK method of `tableau` for this scene's bundle and form
         (exp coordinates unless given; `options` go to `PRKMK`)."""
-        return PRKMK(self.bundle, Exp() if coordinates is None else coordinates, tableau, form=self.form, **options)
+        return PRKMK(self.bundle, Exp() if coordinates is None else coordinates, tableau=tableau, form=self.form, **options)
+
+
+def rotation_matrix(element) -> Array:
+    """The matrix of an `SO3` or `SOn` element (any leading axes): the groups
+    the scenes live on."""
+    if not isinstance(element, (SO3, SOn)):
+        raise TypeError(f"this scene lives on rotation groups (SO3, SOn), got a {type(element).__name__} element.")
+    return element.matrix
 
 
 def rotation_and_vector_embedding(y: BundleElement) -> Float[Array, "*batch 12"]:
     """(Q row-major, v) for a state on SO(3) with a 3-vector fiber."""
-    q = y.base.matrix
+    q = rotation_matrix(y.base)
     return jnp.concatenate([q.reshape(*q.shape[:-2], 9), y.fiber], axis=-1)
 
 
@@ -68,11 +76,11 @@ class AbstractBodyOnTStarSO3(AbstractScene):
     embedded as (Q row-major, Π)."""
 
     @property
-    def bundle(self) -> AbstractBundle:
+    def bundle(self) -> AbstractBundle:  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a property implements an AbstractVar
         return Cotangent(SO3)
 
     @property
-    def form(self) -> Literal["space", "body"]:
+    def form(self) -> Literal["space", "body"]:  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a property implements an AbstractVar
         return "body"
 
     def to_embedding(self, y: BundleElement) -> Float[Array, "*batch 12"]:

@@ -18,7 +18,7 @@ from jaxtyping import Array, Float, PyTree
 from .. import diagnostics
 from ..bundles import BundleElement
 from ..groups import hat
-from .base import AbstractBodyOnTStarSO3
+from .base import AbstractBodyOnTStarSO3, rotation_matrix
 
 
 class HarmonicTorque(eqx.Module):
@@ -62,7 +62,7 @@ class ForcedRigidBody(AbstractBodyOnTStarSO3):
         the balance dH/dt = `power`."""
         return {
             "energy": diagnostics.energy(y.fiber, y.fiber / args.inertia),
-            "orthogonality": diagnostics.orthogonality_defect(y.base.matrix),
+            "orthogonality": diagnostics.orthogonality_defect(rotation_matrix(y.base)),
         }
 
     def embedding_field(self, t, z, args: ForcedParameters):

@@ -28,7 +28,7 @@ from jaxtyping import Array, Float
 from .. import diagnostics
 from ..bundles import AbstractBundle, BundleElement, DirectProduct
 from ..groups import SO3, hat
-from .base import AbstractBodyOnTStarSO3, AbstractScene, rotation_and_vector_embedding
+from .base import AbstractBodyOnTStarSO3, AbstractScene, rotation_and_vector_embedding, rotation_matrix
 
 
 class TopParameters(eqx.Module):
@@ -52,10 +52,10 @@ class HeavyTop(AbstractBodyOnTStarSO3):
 
     def __call__(self, t, y: BundleElement, args: TopParameters):
         omega = y.fiber / args.inertia
-        return omega, jnp.cross(_vertical(y.base.matrix), args.lever)
+        return omega, jnp.cross(_vertical(rotation_matrix(y.base)), args.lever)
 
     def invariants(self, y: BundleElement, args: TopParameters) -> dict[str, Array]:
-        q, pi = y.base.matrix, y.fiber
+        q, pi = rotation_matrix(y.base), y.fiber
         gamma = _vertical(q)
         kinetic = diagnostics.energy(pi, pi / args.inertia)
         return {
@@ -85,20 +85,20 @@ class SphericalTop(AbstractScene):
     """
 
     @property
-    def bundle(self) -> AbstractBundle:
+    def bundle(self) -> AbstractBundle:  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a property implements an AbstractVar
         return DirectProduct(SO3)
 
     @property
-    def form(self) -> Literal["space", "body"]:
+    def form(self) -> Literal["space", "body"]:  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a property implements an AbstractVar
         return "body"
 
     def __call__(self, t, y: BundleElement, args: TopParameters):
         _check_isotropic(args)
-        return y.fiber / args.inertia, jnp.cross(_vertical(y.base.matrix), args.lever)
+        return y.fiber / args.inertia, jnp.cross(_vertical(rotation_matrix(y.base)), args.lever)
 
     def invariants(self, y: BundleElement, args: TopParameters) -> dict[str, Array]:
         _check_isotropic(args)
-        q, pi = y.base.matrix, y.fiber
+        q, pi = rotation_matrix(y.base), y.fiber
         gamma = _vertical(q)
         return {
             "energy": 0.5 * jnp.sum(pi * pi, axis=-1) / args.inertia + jnp.sum(args.lever * gamma, axis=-1),

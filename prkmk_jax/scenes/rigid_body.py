@@ -25,7 +25,7 @@ from jaxtyping import Array, Float
 from .. import diagnostics
 from ..bundles import AbstractBundle, AbstractSemidirect, BundleElement, Cartesian, Cotangent, DirectProduct
 from ..groups import SO3, SOn, hat, vee
-from .base import AbstractScene, rotation_and_vector_embedding
+from .base import AbstractScene, rotation_and_vector_embedding, rotation_matrix
 
 PAPER_INERTIA = np.array([7 / 8, 5 / 8, 1 / 4])
 """Eq. (5.2), acting on the vector form of M."""
@@ -46,7 +46,7 @@ def random_rotation(seed: int, n: int = 3) -> np.ndarray:
     return q
 
 
-def skew_arcsinh(m: Float[Array, "n n"]) -> Float[Array, "n n"]:
+def skew_arcsinh(m: np.ndarray) -> np.ndarray:
     """The skew S with sinh(S) = m for skew m, i.e. exp(S) − exp(−S) = 2m.
 
     On each invariant plane S acts as a rotation by θ and sinh(S) as
@@ -115,7 +115,7 @@ def _commutator_or_cross(a, b):
 
 def symmetric_rigid_body(t, y: BundleElement, inertia) -> tuple[Array, Array]:
     """Body-form generator (Ω, Ω) of (3.3) on `Cartesian(SO3)` or `Cartesian(SOn)`."""
-    q, p = y.base.matrix, y.fiber.matrix
+    q, p = rotation_matrix(y.base), rotation_matrix(y.fiber)
     m = q.T @ p - p.T @ q
     if isinstance(y.base, SO3):
         m = vee(m)
@@ -131,29 +131,29 @@ def unreduced_rigid_body(bundle):
         if bundle.trivialization != "left":
             raise ValueError("the unreduced rigid body is written for the left-trivialised (body) bundle.")
 
-        def field(t, y, inertia):
+        def semidirect_field(t, y, inertia):
             omega = angular_velocity(y.fiber, inertia)
             return omega, jnp.zeros_like(omega)
 
-    elif isinstance(bundle, DirectProduct):
+        return semidirect_field
+    if isinstance(bundle, DirectProduct):
 
-        def field(t, y, inertia):
+        def direct_product_field(t, y, inertia):
             omega = angular_velocity(y.fiber, inertia)
             return omega, _commutator_or_cross(y.fiber, omega)
 
-    else:
-        raise TypeError(f"the unreduced rigid body lives on Cotangent, Semidirect(left) or DirectProduct, not {type(bundle).__name__}.")
-    return field
+        return direct_product_field
+    raise TypeError(f"the unreduced rigid body lives on Cotangent, Semidirect(left) or DirectProduct, not {type(bundle).__name__}.")
 
 
 def attitude_and_momentum(bundle, y: BundleElement) -> tuple[Array, Array]:
     """(g, Π) of a state (or trajectory): for `Cartesian`, g = Q and
     Π = QᵀP − PᵀQ (vector form on SO(3)); otherwise the base and the fiber."""
     if isinstance(bundle, Cartesian):
-        q, p = y.base.matrix, y.fiber.matrix
+        q, p = rotation_matrix(y.base), rotation_matrix(y.fiber)
         m = jnp.swapaxes(q, -1, -2) @ p - jnp.swapaxes(p, -1, -2) @ q
         return q, (vee(m) if isinstance(y.base, SO3) else m)
-    return y.base.matrix, y.fiber
+    return rotation_matrix(y.base), y.fiber
 
 
 def from_attitude_and_momentum(bundle, g: Array, pi: Array) -> BundleElement:
@@ -234,7 +234,7 @@ class FreeRigidBody(AbstractScene):
         return omega, jnp.zeros_like(omega)
 
     def invariants(self, y: BundleElement, inertia) -> dict[str, Array]:
-        g, pi = y.base.matrix, y.fiber
+        g, pi = rotation_matrix(y.base), y.fiber
         omega = jax.vmap(_body_rate, in_axes=(0, None))(pi.reshape(-1, 3), inertia).reshape(pi.shape)
         return {
             "energy": diagnostics.energy(pi, omega),
@@ -276,11 +276,13 @@ class SymmetricRigidBody(AbstractScene):
             "energy": diagnostics.energy(m, angular_velocity(m, inertia), matrix),
             "momentum norm": diagnostics.body_momentum_norm(m, matrix),
             "spatial momentum": diagnostics.spatial_momentum(g, m, matrix),
-            "orthogonality": jnp.maximum(diagnostics.orthogonality_defect(y.base.matrix), diagnostics.orthogonality_defect(y.fiber.matrix)),
+            "orthogonality": jnp.maximum(
+                diagnostics.orthogonality_defect(rotation_matrix(y.base)), diagnostics.orthogonality_defect(rotation_matrix(y.fiber))
+            ),
         }
 
     def to_embedding(self, y: BundleElement) -> Float[Array, "*batch d"]:
-        q, p = y.base.matrix, y.fiber.matrix
+        q, p = rotation_matrix(y.base), rotation_matrix(y.fiber)
         return jnp.concatenate([q.reshape(*q.shape[:-2], -1), p.reshape(*p.shape[:-2], -1)], axis=-1)
 
     def embedding_field(self, t, z, inertia):
