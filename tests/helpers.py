@@ -94,6 +94,23 @@ def reference(bundle, y0, t_end, inertia=INERTIA, t_eval=None) -> np.ndarray:
     return sol.y[:, -1] if t_eval is None else sol.y.T
 
 
+def scene_reference(scene, y0, t_end, args, t_eval=None) -> np.ndarray:
+    """DOP853 at rtol = atol = 1e-13 on a scene's Euclidean embedding (its
+    `embedding_field`, which knows nothing of the PRKMK step): one row per
+    time of `t_eval`, or the states of the solver's own steps."""
+    embedding = jax.jit(scene.embedding_field)
+    sol = solve_ivp(
+        lambda t, z: np.asarray(embedding(t, jnp.asarray(z), args)),
+        (0.0, t_end),
+        np.asarray(scene.to_embedding(y0)),
+        method="DOP853",
+        rtol=1e-13,
+        atol=1e-13,
+        t_eval=t_eval,
+    )
+    return sol.y.T
+
+
 @functools.cache
 def final_state_fn(solver: pk.PRKMK, form_field_key):
     """A jitted (y0, dt, n, args) -> y_n with a dynamic step count (one compile per solver)."""

@@ -7,31 +7,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy.integrate import solve_ivp
 
 import prkmk_jax as pk
-from helpers import assert_generator_matches_embedding
+from helpers import assert_generator_matches_embedding, scene_reference
 from prkmk_jax.scenes import HeavyTop, TopParameters, random_rotation
 
 TOP = HeavyTop()
 ASYMMETRIC = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
 LAGRANGE = TopParameters(jnp.array([1.0, 1.0, 0.4]), jnp.array([0.0, 0.0, 0.9]))
 Y0 = pk.BundleElement(pk.SO3(jnp.asarray(random_rotation(5))), jnp.array([0.3, -0.4, 1.5]))
-EMBEDDING = jax.jit(TOP.embedding_field)
 
 
 def _reference(t_end, args, t_eval=None):
     """DOP853 at rtol = atol = 1e-13 on the embedding ℝ⁹×ℝ³."""
-    sol = solve_ivp(
-        lambda t, z: np.asarray(EMBEDDING(t, jnp.asarray(z), args)),
-        (0.0, t_end),
-        np.asarray(TOP.to_embedding(Y0)),
-        method="DOP853",
-        rtol=1e-13,
-        atol=1e-13,
-        t_eval=t_eval,
-    )
-    return sol.y.T
+    return scene_reference(TOP, Y0, t_end, args, t_eval)
 
 
 def test_the_generator_moves_the_state_as_the_embedding_field_says():
