@@ -99,13 +99,11 @@ def geodesic_distance(q, q_ref):
 
 
 def invariants(q, pi, inertia=INERTIA):
-    """Energy ½Π·I⁻¹Π, |Π|, spatial momentum QΠ, orthogonality ‖QᵀQ − I‖_F."""
-    q, pi = np.asarray(q), np.asarray(pi)
-    energy = 0.5 * np.sum(pi * pi / inertia, axis=-1)
-    norm = np.linalg.norm(pi, axis=-1)
-    spatial = np.einsum("...ij,...j->...i", q, pi)
-    ortho = np.linalg.norm(np.swapaxes(q, -1, -2) @ q - np.eye(3), axis=(-2, -1))
-    return dict(energy=energy, momentum_norm=norm, spatial_momentum=spatial, orthogonality=ortho)
+    """The free body's invariants along (Q, Π) with a leading time axis,
+    from the scene itself (`FreeRigidBody.invariants`): energy, |Π|, spatial
+    momentum QΠ and max|QᵀQ − I|."""
+    y = pk.BundleElement(pk.SO3(jnp.asarray(q)), jnp.asarray(pi))
+    return {name: np.asarray(value) for name, value in SCENE.invariants(y, jnp.asarray(inertia)).items()}
 
 
 # --- solvers -------------------------------------------------------------------------
