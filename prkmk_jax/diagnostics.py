@@ -58,14 +58,14 @@ def _dexp_left_matrix(a):
     return jax.jacfwd(lambda v: SO3.dexp(-a, v))(jnp.zeros_like(a))
 
 
-def to_canonical(g0, g, pi):
+def to_canonical(g0: Float[Array, "3 3"], g: Float[Array, "3 3"], pi: Float[Array, "3"]) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
     """Canonical coordinates (q, p) on T*SO(3) near g₀: g = g₀ exp(q) and
     p = dexp_{−q}ᵀ Π, the momentum conjugate to q (⟨Π, g⁻¹ġ⟩ = ⟨p, q̇⟩)."""
     q = SO3(g0.T @ g).log()
     return q, _dexp_left_matrix(q).T @ pi
 
 
-def from_canonical(g0, q, p):
+def from_canonical(g0: Float[Array, "3 3"], q: Float[Array, "3"], p: Float[Array, "3"]) -> tuple[Float[Array, "3 3"], Float[Array, "3"]]:
     """Inverse of `to_canonical`."""
     return g0 @ SO3.exp(q).matrix, jnp.linalg.solve(_dexp_left_matrix(q).T, p)
 

@@ -77,7 +77,7 @@ def _static_count(name, value) -> int:
 
 
 def integrate(
-    solver: AbstractMethod,
+    method: AbstractMethod,
     vector_field: VectorField,
     y0: BundleElement,
     t0: float | Array,
@@ -97,7 +97,7 @@ def integrate(
     implicit stage or a non-finite state raises at run time; otherwise it is
     reported in `Trajectory.result`.
 
-    `solver` is any `AbstractMethod`: a `PRKMK` or a method built from
+    `method` is any `AbstractMethod`: a `PRKMK` or a method built from
     them (`Composition`, `Symmetrized`, `Adjoint`). Implicit stages start
     from the previous step's stage slopes, moved by the change of the field
     at the step's start (an O(h²) guess; the field at yₙ alone is O(h);
@@ -105,15 +105,15 @@ def integrate(
     way. To continue the run later, pass `Trajectory.continuation` to
     `resume`.
     """
-    _check_solver(solver)
-    y0, t0, dt, args = _checked_start(solver, vector_field, y0, t0, dt, args)
-    guesses = solver.initial_guesses(vector_field, t0, y0, args)
+    _check_method(method)
+    y0, t0, dt, args = _checked_start(method, vector_field, y0, t0, dt, args)
+    guesses = method.initial_guesses(vector_field, t0, y0, args)
     start = Continuation(y0, t0, dt, jnp.array(0, jnp.int32), guesses)
-    return _run(solver, vector_field, start, num_steps, args, save_every, throw)
+    return _run(method, vector_field, start, num_steps, args, save_every, throw)
 
 
 def resume(
-    solver: AbstractMethod,
+    method: AbstractMethod,
     vector_field: VectorField,
     continuation: Continuation,
     num_steps: int,
@@ -138,35 +138,37 @@ def resume(
     constants with another rounding (and fuse a multiply-add), and the two
     runs then differ in the last bit.
     """
-    _check_solver(solver)
+    _check_method(method)
     if not isinstance(continuation, Continuation):
         raise TypeError(
             f"continuation must be a Trajectory's `continuation`, got {type(continuation).__name__}; to start from a state, use integrate."
         )
     c = continuation
-    y, t, dt, args = _checked_start(solver, vector_field, c.y, c.t0 + c.steps_done * c.dt, c.dt, args)
-    expected = jax.tree.structure(eqx.filter_eval_shape(solver.initial_guesses, vector_field, t, y, args))
+    y, t, dt, args = _checked_start(method, vector_field, c.y, c.t0 + c.steps_done * c.dt, c.dt, args)
+    expected = jax.tree.structure(eqx.filter_eval_shape(method.initial_guesses, vector_field, t, y, args))
     if jax.tree.structure(continuation.guesses) != expected:
         raise TypeError("the continuation comes from another method (its carried guesses have another structure).")
     start = eqx.tree_at(lambda c: (c.y, c.dt), continuation, (y, dt))
-    return _run(solver, vector_field, start, num_steps, args, save_every, throw)
+    return _run(method, vector_field, start, num_steps, args, save_every, throw)
 
 
-def _check_solver(solver) -> None:
-    if not isinstance(solver, AbstractMethod):
-        raise TypeError(f"solver must be a PRKMK method (or a composition of them), got {type(solver).__name__}.")
+def _check_method(method) -> None:
+    if not isinstance(method, AbstractMethod):
+        raise TypeError(
+            f"method must be a PRKMK method (or one built from them: Composition, Adjoint, Symmetrized), got {type(method).__name__}."
+        )
 
 
-def _checked_start(solver, vector_field, y, t, dt, args):
+def _checked_start(method, vector_field, y, t, dt, args):
     """The checks both entry points make before a run: the state (static and
     run-time), dt, args and the vector field's output at the start time t,
     with t and dt in the state's dtype. Returns (y, t, dt, args)."""
-    y = solver.bundle.check(y)
+    y = method.bundle.check(y)
     dtype = jnp.result_type(*jax.tree.leaves(y))
     t = jnp.asarray(t, dtype)
     dt = _checked_dt(dt, dtype)
     args = _check_args(args)
-    solver.check_vector_field(vector_field, t, y, args)
+    method.check_vector_field(vector_field, t, y, args)
     return y, t, dt, args
 
 
@@ -178,7 +180,7 @@ def _checked_dt(dt, dtype) -> Array:
     return eqx.error_if(dt, ~(dt > 0), "dt must be > 0 and finite.")
 
 
-def _run(solver, vector_field, start: Continuation, num_steps, args, save_every, throw) -> Trajectory:
+def _run(method, vector_field, start: Continuation, num_steps, args, save_every, throw) -> Trajectory:
     num_steps, save_every = _static_count("num_steps", num_steps), _static_count("save_every", save_every)
     if num_steps % save_every:
         raise ValueError(f"save_every={save_every} must divide num_steps={num_steps}.")
@@ -186,7 +188,7 @@ def _run(solver, vector_field, start: Continuation, num_steps, args, save_every,
 
     def one_step(carry, n):
         y, result, total, worst, guesses = carry
-        y_next, _, step_result, iters, guesses = solver.step_with_guesses(vector_field, t0 + n * dt, y, dt, args, guesses)
+        y_next, _, step_result, iters, guesses = method.step_with_guesses(vector_field, t0 + n * dt, y, dt, args, guesses)
         result = first_failure(result, step_result)
         return (y_next, result, total + iters, jnp.maximum(worst, iters), guesses), None
 
