@@ -253,6 +253,17 @@ def interleaved_times(compiled, *args, rounds):
     return times
 
 
+def ns_per_trajectory_step(times, batch, steps):
+    """The median of each entry of `interleaved_times`, in ns per trajectory-step."""
+    return {name: statistics.median(ts) / (batch * steps) * 1e9 for name, ts in times.items()}
+
+
+def median_ratio(times, numerator, denominator):
+    """The median of the per-round ratios times[numerator] / times[denominator]
+    (runs of the same round saw the same state of the machine)."""
+    return statistics.median(a / b for a, b in zip(times[numerator], times[denominator]))
+
+
 def machine():
     return dict(
         platform=platform.platform(),

@@ -21,7 +21,6 @@ through `integrate`.
 import importlib
 import json
 import shutil
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -92,8 +91,8 @@ def compare(before, tableau, coordinates, path, batch, dtype, steps, rounds):
     if not gap <= tolerance:
         raise AssertionError(f"{tableau} {coordinates} {path}: now and before differ by {gap:.2e} > {tolerance:.0e}")
     times = C.interleaved_times(compiled, *args, rounds=rounds)
-    per_step = {name: statistics.median(ts) / (batch * steps) * 1e9 for name, ts in times.items()}
-    ratio = statistics.median(a / b for a, b in zip(times["now"], times["before"]))
+    per_step = C.ns_per_trajectory_step(times, batch, steps)
+    ratio = C.median_ratio(times, "now", "before")
     return dict(
         tableau=tableau,
         coordinates=coordinates,

@@ -19,7 +19,6 @@ medians of the per-round ratios.
 import argparse
 import json
 import platform
-import statistics
 from pathlib import Path
 
 import diffrax
@@ -28,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import prkmk_jax as pk
-from _common import compile_fn, interleaved_times
+from _common import compile_fn, interleaved_times, median_ratio, ns_per_trajectory_step
 from prkmk_jax.scenes import FreeRigidBody
 from prkmk_jax.scenes import rigid_body as rb
 
@@ -89,25 +88,20 @@ def main(argv=None):
     for batch in batches:
         pis = jnp.asarray(rb.PAPER_MOMENTUM) * (1 + 0.1 * jnp.asarray(np.random.default_rng(0).normal(size=(batch, 1))))
         compiled = [_compile(jax.vmap(fn), pis) for fn in (scan_run, diffrax_run, while_run)]
-        times = list(interleaved_times(dict(enumerate(c for c, _ in compiled)), pis, rounds=repeats).values())
-
-        def per(ts):
-            return statistics.median(ts) / (steps * batch) * 1e9
-
-        def ratio(a, b):
-            return statistics.median(x / y for x, y in zip(times[a], times[b]))
+        times = interleaved_times(dict(enumerate(c for c, _ in compiled)), pis, rounds=repeats)
+        per = ns_per_trajectory_step(times, batch, steps)
 
         row = dict(
             batch=batch,
             steps=steps,
             scan_compile_s=compiled[0][1],
             diffrax_compile_s=compiled[1][1],
-            scan_ns_per_step=per(times[0]),
-            diffrax_ns_per_step=per(times[1]),
-            while_ns_per_step=per(times[2]),
-            diffrax_over_scan=ratio(1, 0),
-            while_over_scan=ratio(2, 0),
-            diffrax_over_while=ratio(1, 2),
+            scan_ns_per_step=per[0],
+            diffrax_ns_per_step=per[1],
+            while_ns_per_step=per[2],
+            diffrax_over_scan=median_ratio(times, 1, 0),
+            while_over_scan=median_ratio(times, 2, 0),
+            diffrax_over_while=median_ratio(times, 1, 2),
         )
         rows.append(row)
         print(

@@ -22,7 +22,6 @@ to the same tolerance).
 """
 
 import json
-import statistics
 
 import jax
 import jax.numpy as jnp
@@ -61,7 +60,7 @@ def compare(scene_name, tableau_name, batch, dtype, steps, rounds):
     gap = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(outputs["traced"][:2], outputs["tableau"][:2]))
     times = C.interleaved_times(compiled, *inputs, rounds=rounds)
     y0 = pk.BundleElement(pk.SO3(inputs[0][0]), inputs[1][0])
-    plan = scene.method(tab).stage_plan(scene, 0.0, y0, H, inputs[2])
+    plan = scene.method(tab).stage_plan(scene, 0.0, y0, inputs[2])
     return dict(
         scene=scene_name,
         tableau=tableau_name,
@@ -69,8 +68,8 @@ def compare(scene_name, tableau_name, batch, dtype, steps, rounds):
         batch=batch,
         steps=steps,
         plan=" ".join(_describe(part) for part in plan),
-        ns_per_traj_step={name: statistics.median(ts) / (batch * steps) * 1e9 for name, ts in times.items()},
-        traced_over_tableau=statistics.median(a / b for a, b in zip(times["traced"], times["tableau"])),
+        ns_per_traj_step=C.ns_per_trajectory_step(times, batch, steps),
+        traced_over_tableau=C.median_ratio(times, "traced", "tableau"),
         iterations_per_step={name: float(jnp.mean(out[2])) / steps for name, out in outputs.items()},
         max_abs_difference=gap,
     )

@@ -34,7 +34,6 @@ time is reported separately.
 
 import functools
 import json
-import statistics
 
 import diffrax
 import jax
@@ -226,8 +225,8 @@ def compare(method_name, batch, dtype, steps, rounds):
         if not gap <= tolerance:
             raise AssertionError(f"{method_name} {name} differs from the hand-fused step by {gap:.2e} > {tolerance:.0e}")
     times = C.interleaved_times(compiled, *args, rounds=rounds)
-    per_step = {name: statistics.median(ts) / (batch * steps) * 1e9 for name, ts in times.items()}
-    ratio = {name: statistics.median(t / f for t, f in zip(ts, times["floor"])) for name, ts in times.items()}
+    per_step = C.ns_per_trajectory_step(times, batch, steps)
+    ratio = {name: C.median_ratio(times, name, "floor") for name in times}
     row = dict(
         method=method_name,
         dtype=jnp.dtype(dtype).name,
@@ -242,8 +241,8 @@ def compare(method_name, batch, dtype, steps, rounds):
         ),
     )
     if "tsit5" in times:
-        row["integrate_over_tsit5"] = statistics.median(a / b for a, b in zip(times["integrate"], times["tsit5"]))
-    row["diffeqsolve_over_integrate"] = statistics.median(a / b for a, b in zip(times["diffeqsolve"], times["integrate"]))
+        row["integrate_over_tsit5"] = C.median_ratio(times, "integrate", "tsit5")
+    row["diffeqsolve_over_integrate"] = C.median_ratio(times, "diffeqsolve", "integrate")
     return row
 
 

@@ -103,7 +103,7 @@ class Adjoint(AbstractMadeOfSteps):
                     out.append(method.generator(vector_field, tt, y_end, args))
                     continue
                 U = (combination(-dt, tab.a_first[i], first, zeros[0]), combination(-dt, tab.a_second[i], second, zeros[1]))
-                out.append(method.slope(U, method.generator(vector_field, tt, method.apply_increment(U, y_end), args)))
+                out.append(method.slope_at(vector_field, tt, U, y_end, args))
             return tuple(out)
 
         stages, result, iterations = method.solve_implicit(all_slopes, guesses, dtype)

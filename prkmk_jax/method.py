@@ -120,6 +120,11 @@ class AbstractMethod(eqx.Module):
             U = tree_scale(-1.0, U)
         return self.coordinates.inverse_differential(self.bundle, U, X, self.order)
 
+    def slope_at(self, vector_field: VectorField, t, U: AlgebraPair, y: BundleElement, args) -> AlgebraPair:
+        """The slope of a stage: df⁻¹_U(X(t, f(U)⊙y)), the field at the point
+        the increment U reaches from y, pulled back to the algebra."""
+        return self.slope(U, self.generator(vector_field, t, self.apply_increment(U, y), args))
+
     def generator(self, vector_field: VectorField, t, y: BundleElement, args) -> AlgebraPair:
         """(ξ, η) = vector_field(t, y, args) in the state's dtype, whatever
         precision the user's field returns."""

@@ -185,13 +185,13 @@ class PRKMK(AbstractMethod):
             if u is None and v is None:  # U_i = 0: Y_i = yₙ and df⁻¹_0 = I
                 return field_at_yn() if tab.c_first[i] == 0 else field(tt, y)
             U = (zeros[0] if u is None else u, zeros[1] if v is None else v)
-            return self.slope(U, field(tt, self.apply_increment(U, y)))
+            return self.slope_at(vector_field, tt, U, y, args)
 
         slopes: list[list] = [[None] * tab.num_stages, [None] * tab.num_stages]
         result = RESULTS.successful
         iterations = jnp.array(0, jnp.int32)
         start = None
-        for part in self.stage_plan(vector_field, t, y, dt, args):
+        for part in self.stage_plan(vector_field, t, y, args):
             if isinstance(part, Explicit):
                 pair = stage_slope(part.stage, *slopes)
                 for c in part.components:
@@ -226,7 +226,7 @@ class PRKMK(AbstractMethod):
         y_next = self.advance(u_next, y)
         return y_next, u_next, flag_nonfinite(result, y_next), iterations, tuple(zip(first, second))
 
-    def stage_plan(self, vector_field: VectorField, t: Array, y: BundleElement, dt: Array, args: PyTree = None):
+    def stage_plan(self, vector_field: VectorField, t: Array, y: BundleElement, args: PyTree = None):
         """The order in which this step finds its stage slopes at (t, y)
         (`stage_plan.plan_stages`; trace-time, from the field's program
         when `coupling="traced"`)."""
@@ -235,8 +235,7 @@ class PRKMK(AbstractMethod):
         zeros = self.bundle.algebra_zeros(y)
 
         def stage(u, v):
-            U = (u, v)
-            return self.slope(U, self.generator(vector_field, t, self.apply_increment(U, y), args))
+            return self.slope_at(vector_field, t, (u, v), y, args)
 
         dependence = stage_dependence(stage, lambda state: self.generator(vector_field, t, state, args), zeros, y)
         return plan_stages(self.tableau, dependence)

@@ -96,11 +96,11 @@ def test_eta_zero_makes_the_first_verlet_stage_explicit():
     scene, args = SCENES["free body T*SO(3)"]
     y = _state(scene)
     for coordinates in (pk.Exp(), pk.Exp(truncation=None), pk.Cayley()):
-        assert scene.method(pk.stormer_verlet, coordinates).stage_plan(scene, 0.0, y, 0.1, args) == (
+        assert scene.method(pk.stormer_verlet, coordinates).stage_plan(scene, 0.0, y, args) == (
             Explicit(0, (0,)),
             Implicit(((1, 0),)),
         )
-        assert scene.method(pk.lobatto_iiia_iiib4, coordinates).stage_plan(scene, 0.0, y, 0.1, args) == (
+        assert scene.method(pk.lobatto_iiia_iiib4, coordinates).stage_plan(scene, 0.0, y, args) == (
             Explicit(0, (0,)),
             Implicit(((1, 0), (2, 0))),
         )
@@ -114,10 +114,10 @@ def test_separable_field_makes_euler_and_verlet_explicit(coordinates):
     scene, args = SCENES["spherical top"]
     y = _state(scene)
     for tab in (pk.symplectic_euler, pk.stormer_verlet):
-        plan = scene.method(tab, coordinates).stage_plan(scene, 0.0, y, 0.1, args)
+        plan = scene.method(tab, coordinates).stage_plan(scene, 0.0, y, args)
         assert all(isinstance(part, Explicit) for part in plan), plan
         assert sorted((p.stage, c) for p in plan for c in p.components) == [(i, c) for i in range(tab.num_stages) for c in (0, 1)]
-    exact = scene.method(pk.stormer_verlet, pk.Exp(truncation=None)).stage_plan(scene, 0.0, y, 0.1, args)
+    exact = scene.method(pk.stormer_verlet, pk.Exp(truncation=None)).stage_plan(scene, 0.0, y, args)
     assert any(isinstance(part, Implicit) for part in exact)
 
 
@@ -139,7 +139,7 @@ def test_a_constant_nonzero_eta_is_not_taken_for_zero():
         return y.fiber / inertia, jnp.array([0.0, 0.1, 0.0])
 
     method = pk.PRKMK(bundle, pk.Exp(), pk.stormer_verlet, form="body")
-    plan = method.stage_plan(field, 0.0, initial_state(bundle), 0.1, jnp.asarray(INERTIA))
+    plan = method.stage_plan(field, 0.0, initial_state(bundle), jnp.asarray(INERTIA))
     assert any(c == 1 for part in plan for c in (part.components if isinstance(part, Explicit) else [c for _, c in part.slopes]))
 
 
@@ -163,7 +163,7 @@ def test_traced_plan_gives_the_tableau_plan_trajectory(name, tab):
     for a, b in zip(jax.tree.leaves(traced.ys), jax.tree.leaves(tableau.ys)):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
     assert int(traced.stats["num_iterations"]) <= int(tableau.stats["num_iterations"])
-    plan = scene.method(TABLEAUS[tab]).stage_plan(scene, 0.0, y0, h, args)
+    plan = scene.method(TABLEAUS[tab]).stage_plan(scene, 0.0, y0, args)
     if all(isinstance(part, Explicit) for part in plan):
         assert int(traced.stats["num_iterations"]) == 0
 

@@ -196,7 +196,7 @@ def test_stage_guesses_change_the_iterations_not_the_step(tab):
         np.testing.assert_allclose(y.fiber, y_default.fiber, rtol=0, atol=1e-12)
         np.testing.assert_allclose(y.base.matrix, y_default.base.matrix, rtol=0, atol=1e-12)
     # From the solution itself each implicit block confirms it in one iteration.
-    implicit_blocks = sum(isinstance(part, Implicit) for part in solver.stage_plan(field, 0.0, y0, H, args))
+    implicit_blocks = sum(isinstance(part, Implicit) for part in solver.stage_plan(field, 0.0, y0, args))
     assert int(n_exact) == implicit_blocks and int(n_default) > implicit_blocks and int(n_far) > implicit_blocks
 
 
