@@ -40,11 +40,15 @@ from typing import ClassVar, Literal, cast
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, PyTree
+from jaxtyping import Array, Float, PyTree
 
 from .groups.base import AbstractLieGroup, AbstractQuadraticGroup
 
-AlgebraPair = tuple[Array, Array]
+Algebra = Float[Array, "..."]
+"""An element of g or g* of the base group: any leading batch axes, then
+`algebra_ndim` axes (3-vectors for SO(3), n×n skew matrices for SO(n))."""
+AlgebraPair = tuple[Algebra, Algebra]
+"""(u, v) ∈ 𝔤 of a bundle group: the base's part and the fiber's."""
 
 
 class BundleElement(eqx.Module):
@@ -52,7 +56,7 @@ class BundleElement(eqx.Module):
 
     base: AbstractLieGroup
     """The configuration a ∈ G."""
-    fiber: PyTree
+    fiber: PyTree[Array]
     """An algebra array u ∈ g or μ ∈ g* (shape `(*batch, *algebra_shape)`), or a
     second group element for `Cartesian`."""
 

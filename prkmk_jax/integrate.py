@@ -5,7 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.core import Tracer
-from jaxtyping import Array, PyTree
+from jaxtyping import Array, Float, Int, PyTree, Real
 
 from .bundles import BundleElement
 from .method import RESULTS, AbstractMethod, VectorField, first_failure
@@ -18,12 +18,12 @@ class Continuation(eqx.Module):
 
     y: BundleElement
     """The last state."""
-    t0: Array
+    t0: Real[Array, ""]
     """The start time of the first run; step n runs from t0 + n·dt."""
-    dt: Array
+    dt: Real[Array, ""]
     """The step size."""
-    steps_done: Array
-    """Steps taken since `t0` (int32 scalar)."""
+    steps_done: Int[Array, ""]
+    """Steps taken since `t0` (int32)."""
     guesses: PyTree
     """The implicit stages' starting guesses for the next step (the carried
     stage slopes of `AbstractMethod.step_with_guesses`)."""
@@ -32,14 +32,14 @@ class Continuation(eqx.Module):
 class Trajectory(eqx.Module):
     """Saved states of a fixed-step run."""
 
-    ts: Array
-    """Save times, shape `(num_saves,)`, starting with `t0`."""
+    ts: Float[Array, " num_saves"]
+    """Save times, starting with `t0`."""
     ys: BundleElement
     """States with a leading time axis of length `num_saves`."""
     result: RESULTS
     """`RESULTS.successful`, or the first failure (an implicit stage that did
     not converge, a non-finite state)."""
-    stats: dict
+    stats: dict[str, Int[Array, ""]]
     """`num_iterations`: total implicit iterations; `max_iterations_per_step`."""
     continuation: Continuation
     """Hand it to `resume` to continue the run: the continued run equals the
@@ -80,8 +80,8 @@ def integrate(
     method: AbstractMethod,
     vector_field: VectorField,
     y0: BundleElement,
-    t0: float | Array,
-    dt: float | Array,
+    t0: float | Real[Array, ""],
+    dt: float | Real[Array, ""],
     num_steps: int,
     args: PyTree = None,
     *,

@@ -94,18 +94,18 @@ def scene_of(run: Run) -> AbstractScene:
     return rb.SymmetricRigidBody(run.bundle) if run.scene == "symmetric" else rb.FreeRigidBody(run.bundle)
 
 
-def _step_map(solver, field, bundle, h, inertia):
+def _step_map(method, field, bundle, h, inertia):
     """One step as a map (g, Π) ↦ (g', Π') on T*SO(3)."""
 
     def step(g, pi):
         y = rb.from_attitude_and_momentum(bundle, g, pi)
-        y1 = solver.step(field, 0.0, y, h, inertia)[0]
+        y1 = method.step(field, 0.0, y, h, inertia)[0]
         return rb.attitude_and_momentum(bundle, y1)
 
     return step
 
 
-def solver_of(run: Run) -> PRKMK:
+def method_of(run: Run) -> PRKMK:
     """The symmetric body on SO(3)² at h = 0.1 has h·Lip ≈ 0.8: fixed-point
     iteration needs ~94 iterations a step there (measured), Newton 4. The
     other runs converge in ≤ 24 fixed-point iterations, cheaper than Newton's
@@ -134,10 +134,10 @@ def execute(run: Run, seed: int, symplecticity: bool = True, cache_dir: Path | N
     `symplecticity=False` skips the (compile-heavy) step-map Jacobian."""
     jax.config.update("jax_enable_x64", True)
     use_compilation_cache(cache_dir)
-    solver = solver_of(run)
+    method = method_of(run)
     field = scene_of(run)
     y0, inertia = initial_data(run, seed)
-    simulate = jax.jit(lambda y0, inertia: integrate(solver, field, y0, 0.0, run.h, run.num_steps, inertia, save_every=run.save_every))
+    simulate = jax.jit(lambda y0, inertia: integrate(method, field, y0, 0.0, run.h, run.num_steps, inertia, save_every=run.save_every))
     start = time.perf_counter()
     compiled = simulate.lower(y0, inertia).compile()
     compile_s = time.perf_counter() - start
@@ -156,7 +156,7 @@ def execute(run: Run, seed: int, symplecticity: bool = True, cache_dir: Path | N
         ortho.append(diagnostics.orthogonality_defect(traj.ys.fiber.matrix))
     defect = None
     if run.n == 3 and symplecticity:
-        step = _step_map(solver, field, run.bundle, run.h, inertia)
+        step = _step_map(method, field, run.bundle, run.h, inertia)
         g0, pi0 = rb.attitude_and_momentum(run.bundle, y0)
         defect = float(jax.jit(lambda g, p: diagnostics.symplecticity_defect(step, g, p))(g0, pi0))
 

@@ -248,15 +248,15 @@ class PRKMK(AbstractMethod):
         default_tol = max(1e-12, 50 * eps)
         rtol = default_tol if self.rtol is None else self.rtol
         atol = default_tol if self.atol is None else self.atol
-        solver = self.root_finder
-        if solver is None:
+        root_finder = self.root_finder
+        if root_finder is None:
             return _fixed_point_iteration(block_slopes, guess, rtol, atol, self.max_iterations, dtype)
         fn = lambda z, _: block_slopes(z)  # noqa: E731
-        if isinstance(solver, optx.AbstractFixedPointSolver):
-            sol = optx.fixed_point(fn, solver, guess, max_steps=self.max_iterations, throw=False)
+        if isinstance(root_finder, optx.AbstractFixedPointSolver):
+            sol = optx.fixed_point(fn, root_finder, guess, max_steps=self.max_iterations, throw=False)
         else:
             sol = optx.root_find(
-                lambda z, a: jax.tree.map(jnp.subtract, fn(z, a), z), solver, guess, max_steps=self.max_iterations, throw=False
+                lambda z, a: jax.tree.map(jnp.subtract, fn(z, a), z), root_finder, guess, max_steps=self.max_iterations, throw=False
             )
         return sol.value, RESULTS.promote(sol.result), sol.stats["num_steps"].astype(jnp.int32)
 

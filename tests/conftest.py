@@ -1,6 +1,26 @@
+import atexit
+import os
+import shutil
+import tempfile
+
 import jax
 from hypothesis import HealthCheck, settings
 
+# One persistent compilation cache for the whole test run: the xdist workers,
+# the notebook kernels and the benchmark scripts the tests start inherit it
+# through the environment, so a program compiled by one of them (the §5 runs,
+# the same scene's step at the same shapes) is loaded, not compiled, by the
+# others. A cached program is the compiled one, bit for bit. The controller
+# creates the directory before it starts the workers; a fresh one per run,
+# so nothing carries over between runs.
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="prkmk-tests-xla-")
+    atexit.register(shutil.rmtree, os.environ["JAX_COMPILATION_CACHE_DIR"], ignore_errors=True)
+    os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+    os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "-1"
+jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", float(os.environ.get("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")))
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", int(os.environ.get("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "-1")))
 jax.config.update("jax_enable_x64", True)
 
 settings.register_profile("prkmk", deadline=None, max_examples=40, suppress_health_check=[HealthCheck.too_slow], derandomize=True)

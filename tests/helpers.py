@@ -112,27 +112,27 @@ def scene_reference(scene, y0, t_end, args, t_eval=None) -> np.ndarray:
 
 
 @functools.cache
-def final_state_fn(solver: pk.PRKMK, form_field_key):
-    """A jitted (y0, dt, n, args) -> y_n with a dynamic step count (one compile per solver)."""
+def final_state_fn(method: pk.PRKMK, form_field_key):
+    """A jitted (y0, dt, n, args) -> y_n with a dynamic step count (one compile per method)."""
     bundle, form = form_field_key
     field = rigid_body_field(bundle, form)
 
     @jax.jit
     def run(y0, dt, n, args):
         def body(i, y):
-            return solver.step(field, i * dt, y, dt, args)[0]
+            return method.step(field, i * dt, y, dt, args)[0]
 
         return jax.lax.fori_loop(0, n, body, y0)
 
     return run
 
 
-def empirical_order(solver: pk.PRKMK, t_end=2.0, steps=(10, 20, 40, 80), seed=0, inertia=INERTIA):
+def empirical_order(method: pk.PRKMK, t_end=2.0, steps=(10, 20, 40, 80), seed=0, inertia=INERTIA):
     """Log–log slope of the final-time error vs h against the DOP853 reference."""
-    bundle = solver.bundle
+    bundle = method.bundle
     y0 = initial_state(bundle, seed)
     ref = reference(bundle, y0, t_end, inertia)
-    run = final_state_fn(solver, (bundle, solver.form))
+    run = final_state_fn(method, (bundle, method.form))
     errs = []
     for n in steps:
         yn = run(y0, jnp.asarray(t_end / n), n, jnp.asarray(inertia))

@@ -14,17 +14,17 @@ COTANGENT = pk.Cotangent(pk.SO3)
 FIELD = rigid_body_field(COTANGENT, "body")
 
 
-def _solver(tab=pk.stormer_verlet, coords=pk.Exp(), bundle=COTANGENT, **kw):
+def _method(tab=pk.stormer_verlet, coords=pk.Exp(), bundle=COTANGENT, **kw):
     return pk.PRKMK(bundle, coords, tab, form="body", **kw)
 
 
 def test_saving_and_times():
     y0 = initial_state(COTANGENT)
-    traj = pk.integrate(_solver(), FIELD, y0, 1.0, 0.01, 300, jnp.asarray(INERTIA), save_every=50)
+    traj = pk.integrate(_method(), FIELD, y0, 1.0, 0.01, 300, jnp.asarray(INERTIA), save_every=50)
     assert traj.ts.shape == (7,) and traj.ys.base.matrix.shape == (7, 3, 3) and traj.ys.fiber.shape == (7, 3)
     np.testing.assert_allclose(traj.ts, 1.0 + 0.5 * np.arange(7), atol=1e-14)
     np.testing.assert_array_equal(traj.ys.fiber[0], y0.fiber)
-    every = pk.integrate(_solver(), FIELD, y0, 1.0, 0.01, 300, jnp.asarray(INERTIA))
+    every = pk.integrate(_method(), FIELD, y0, 1.0, 0.01, 300, jnp.asarray(INERTIA))
     np.testing.assert_allclose(every.ys.fiber[::50], traj.ys.fiber, atol=0)
     assert traj.result == pk.RESULTS.successful
     assert int(traj.stats["num_iterations"]) > 0
@@ -43,11 +43,11 @@ def test_non_autonomous_order(tab):
         lambda t, z: [z[1], -np.sin(z[0]) + 0.3 * np.cos(2 * t)], (t0, t_end), [1.0, 0.2], method="DOP853", rtol=1e-13, atol=1e-13
     ).y[:, -1]
     y0 = pk.BundleElement(pk.VectorSpace(jnp.array([1.0])), pk.VectorSpace(jnp.array([0.2])))
-    solver = pk.PRKMK(pk.Cartesian(pk.VectorSpace), pk.Exp(), tab)
+    method = pk.PRKMK(pk.Cartesian(pk.VectorSpace), pk.Exp(), tab)
     steps = {1: (100, 200, 400, 800), 6: (4, 8, 16, 32)}.get(tab.order, (10, 20, 40, 80))
     errs = []
     for n in steps:
-        traj = pk.integrate(solver, field, y0, t0, (t_end - t0) / n, n, save_every=n)
+        traj = pk.integrate(method, field, y0, t0, (t_end - t0) / n, n, save_every=n)
         errs.append(max(abs(float(traj.ys.base.value[-1, 0]) - ref[0]), abs(float(traj.ys.fiber.value[-1, 0]) - ref[1])))
     slope = np.polyfit(np.log(1 / np.asarray(steps)), np.log(errs), 1)[0]
     assert abs(slope - tab.order) <= 0.15, (slope, errs)
@@ -78,11 +78,11 @@ def test_jit_vmap_over_initial_conditions_and_args():
     ys = [initial_state(COTANGENT, seed=s) for s in range(4)]
     batch = jax.tree.map(lambda *a: jnp.stack(a), *ys)
     inertias = jnp.asarray(INERTIA) * jnp.array([1.0, 1.1, 0.9, 1.2])[:, None]
-    solver = _solver(pk.lobatto_iiia_iiib4)
+    method = _method(pk.lobatto_iiia_iiib4)
 
     @jax.jit
     def run(y0, inertia):
-        return pk.integrate(solver, FIELD, y0, 0.0, 0.05, 40, inertia, save_every=10)
+        return pk.integrate(method, FIELD, y0, 0.0, 0.05, 40, inertia, save_every=10)
 
     batched = jax.vmap(run)(batch, inertias)
     assert batched.ys.fiber.shape == (4, 5, 3)
@@ -93,20 +93,20 @@ def test_jit_vmap_over_initial_conditions_and_args():
 
 
 def test_no_retrace_for_new_data():
-    solver = _solver()
+    method = _method()
 
     @eqx.filter_jit
     @eqx.debug.assert_max_traces(max_traces=1)
     def run(y0, inertia, dt):
-        return pk.integrate(solver, FIELD, y0, 0.0, dt, 20, inertia)
+        return pk.integrate(method, FIELD, y0, 0.0, dt, 20, inertia)
 
     for seed in range(3):
         run(initial_state(COTANGENT, seed), jnp.asarray(INERTIA) * (1 + seed), jnp.asarray(0.01 * (seed + 1)))
 
 
-def _loss_fn(solver, bundle, field):
+def _loss_fn(method, bundle, field):
     def loss(inertia, y0):
-        traj = pk.integrate(solver, field, y0, 0.0, 0.05, 40, inertia, save_every=10)
+        traj = pk.integrate(method, field, y0, 0.0, 0.05, 40, inertia, save_every=10)
         target = jnp.array([0.3, -0.2, 0.9])
         return jnp.sum((traj.ys.base.matrix[:, :, 2] - target) ** 2)
 
@@ -123,8 +123,8 @@ def _loss_fn(solver, bundle, field):
     ids=["cotangent-SV-exp", "direct-lobatto-cayley", "cartesian-SE-exact"],
 )
 def test_gradient_wrt_args_matches_finite_differences(bundle, tab, coords):
-    solver = pk.PRKMK(bundle, coords, tab, form="body")
-    loss = _loss_fn(solver, bundle, rigid_body_field(bundle, "body"))
+    method = pk.PRKMK(bundle, coords, tab, form="body")
+    loss = _loss_fn(method, bundle, rigid_body_field(bundle, "body"))
     y0 = initial_state(bundle)
     inertia = jnp.asarray(INERTIA)
     grad = jax.jit(jax.grad(loss))(inertia, y0)
@@ -135,8 +135,8 @@ def test_gradient_wrt_args_matches_finite_differences(bundle, tab, coords):
 
 
 def test_gradient_wrt_initial_momentum_under_vmap():
-    solver = _solver(pk.lobatto_iiia_iiib4)
-    loss = _loss_fn(solver, COTANGENT, FIELD)
+    method = _method(pk.lobatto_iiia_iiib4)
+    loss = _loss_fn(method, COTANGENT, FIELD)
     y0 = initial_state(COTANGENT)
 
     def loss_of_pi(pi, inertia):
@@ -159,11 +159,11 @@ def test_gradients_finite_through_the_identity(coords):
     """Every step evaluates f and df⁻¹ at U = 0; starting at g = I and Π = 0
     the state itself sits at the identity too."""
     bundle = pk.Semidirect(pk.SO3, "left")
-    solver = pk.PRKMK(bundle, coords, pk.lobatto_iiia_iiib4, form="body")
+    method = pk.PRKMK(bundle, coords, pk.lobatto_iiia_iiib4, form="body")
 
     def loss(pi0, inertia):
         y0 = pk.BundleElement(pk.SO3(jnp.eye(3)), pi0)
-        traj = pk.integrate(solver, rigid_body_field(bundle, "body"), y0, 0.0, 0.1, 10, inertia)
+        traj = pk.integrate(method, rigid_body_field(bundle, "body"), y0, 0.0, 0.1, 10, inertia)
         return jnp.sum(traj.ys.base.log() ** 2) + jnp.sum(traj.ys.base.matrix)
 
     g_pi, g_i = jax.jit(jax.grad(loss, argnums=(0, 1)))(jnp.zeros(3), jnp.asarray(INERTIA))
@@ -175,47 +175,47 @@ def test_non_orthogonal_initial_rotation():
     y0 = initial_state(COTANGENT)
     bad = pk.BundleElement(pk.SO3(y0.base.matrix * 1.001), y0.fiber)
     with pytest.raises(Exception, match="not orthogonal"):
-        pk.integrate(_solver(), FIELD, bad, 0.0, 0.01, 10, jnp.asarray(INERTIA))
+        pk.integrate(_method(), FIELD, bad, 0.0, 0.01, 10, jnp.asarray(INERTIA))
     reflection = pk.BundleElement(pk.SO3(-y0.base.matrix), y0.fiber)
     with pytest.raises(Exception, match="reflection"):
-        jax.jit(lambda y: pk.integrate(_solver(), FIELD, y, 0.0, 0.01, 10, jnp.asarray(INERTIA)))(reflection)
+        jax.jit(lambda y: pk.integrate(_method(), FIELD, y, 0.0, 0.01, 10, jnp.asarray(INERTIA)))(reflection)
 
 
 def test_nan_input():
     y0 = initial_state(COTANGENT)
     with pytest.raises(Exception, match="not finite"):
-        pk.integrate(_solver(), FIELD, pk.BundleElement(y0.base, y0.fiber.at[1].set(jnp.nan)), 0.0, 0.01, 10, jnp.asarray(INERTIA))
+        pk.integrate(_method(), FIELD, pk.BundleElement(y0.base, y0.fiber.at[1].set(jnp.nan)), 0.0, 0.01, 10, jnp.asarray(INERTIA))
     with pytest.raises(Exception, match="non-finite"):
-        pk.integrate(_solver(), FIELD, y0, 0.0, 0.01, 10, jnp.asarray(INERTIA).at[0].set(jnp.nan))
+        pk.integrate(_method(), FIELD, y0, 0.0, 0.01, 10, jnp.asarray(INERTIA).at[0].set(jnp.nan))
 
 
 def test_mismatched_shapes():
     y0 = initial_state(COTANGENT)
     with pytest.raises(ValueError, match="shape"):
-        pk.integrate(_solver(), lambda t, y, a: (jnp.zeros(4), jnp.zeros(3)), y0, 0.0, 0.01, 10)
+        pk.integrate(_method(), lambda t, y, a: (jnp.zeros(4), jnp.zeros(3)), y0, 0.0, 0.01, 10)
     with pytest.raises(ValueError, match="pair"):
-        pk.integrate(_solver(), lambda t, y, a: jnp.zeros(3), y0, 0.0, 0.01, 10)
+        pk.integrate(_method(), lambda t, y, a: jnp.zeros(3), y0, 0.0, 0.01, 10)
     with pytest.raises(ValueError, match="fiber shape"):
-        pk.integrate(_solver(), FIELD, pk.BundleElement(y0.base, jnp.zeros(2)), 0.0, 0.01, 10, jnp.asarray(INERTIA))
+        pk.integrate(_method(), FIELD, pk.BundleElement(y0.base, jnp.zeros(2)), 0.0, 0.01, 10, jnp.asarray(INERTIA))
     with pytest.raises(TypeError, match="SO3 fiber"):
-        pk.integrate(_solver(bundle=pk.Cartesian(pk.SO3)), FIELD, y0, 0.0, 0.01, 10, jnp.asarray(INERTIA))
+        pk.integrate(_method(bundle=pk.Cartesian(pk.SO3)), FIELD, y0, 0.0, 0.01, 10, jnp.asarray(INERTIA))
 
 
 @pytest.mark.parametrize("dt", [0.0, -0.1, float("nan")])
 def test_bad_dt(dt):
     y0 = initial_state(COTANGENT)
     with pytest.raises(ValueError, match="dt must be > 0"):
-        pk.integrate(_solver(), FIELD, y0, 0.0, dt, 10, jnp.asarray(INERTIA))
+        pk.integrate(_method(), FIELD, y0, 0.0, dt, 10, jnp.asarray(INERTIA))
     with pytest.raises(Exception, match="dt must be > 0"):
-        jax.jit(lambda d: pk.integrate(_solver(), FIELD, y0, 0.0, d, 10, jnp.asarray(INERTIA)))(jnp.asarray(dt))
+        jax.jit(lambda d: pk.integrate(_method(), FIELD, y0, 0.0, d, 10, jnp.asarray(INERTIA)))(jnp.asarray(dt))
 
 
 def test_bad_step_counts():
     y0 = initial_state(COTANGENT)
     with pytest.raises(ValueError, match="divide"):
-        pk.integrate(_solver(), FIELD, y0, 0.0, 0.01, 10, jnp.asarray(INERTIA), save_every=3)
+        pk.integrate(_method(), FIELD, y0, 0.0, 0.01, 10, jnp.asarray(INERTIA), save_every=3)
     with pytest.raises(ValueError, match="num_steps"):
-        pk.integrate(_solver(), FIELD, y0, 0.0, 0.01, 0, jnp.asarray(INERTIA))
+        pk.integrate(_method(), FIELD, y0, 0.0, 0.01, 0, jnp.asarray(INERTIA))
     with pytest.raises(TypeError, match="PRKMK"):
         pk.integrate("SV", FIELD, y0, 0.0, 0.01, 10, jnp.asarray(INERTIA))
 
@@ -233,12 +233,12 @@ def test_non_converging_implicit_stage():
     """Symplectic Euler on the symmetric rigid body with h = 1: the fixed-point
     map is not a contraction (the field's Lipschitz constant is ≈ 8)."""
     bundle = pk.Cartesian(pk.SO3)
-    solver = pk.PRKMK(bundle, pk.Exp(), pk.symplectic_euler, form="body", max_iterations=30)
+    method = pk.PRKMK(bundle, pk.Exp(), pk.symplectic_euler, form="body", max_iterations=30)
     field = rigid_body_field(bundle, "body")
     y0 = initial_state(bundle)
     with pytest.raises(Exception, match="maximum number of steps was reached in the nonlinear solver"):
-        pk.integrate(solver, field, y0, 0.0, 1.0, 5, jnp.asarray(INERTIA))
-    traj = pk.integrate(solver, field, y0, 0.0, 1.0, 5, jnp.asarray(INERTIA), throw=False)
+        pk.integrate(method, field, y0, 0.0, 1.0, 5, jnp.asarray(INERTIA))
+    traj = pk.integrate(method, field, y0, 0.0, 1.0, 5, jnp.asarray(INERTIA), throw=False)
     assert traj.result == pk.RESULTS.nonlinear_max_steps_reached
     # the same step size converges with Newton's method
     import optimistix as optx
@@ -252,7 +252,7 @@ def test_float32():
     y32 = jax.tree.map(lambda a: a.astype(jnp.float32), y64)
     inertia = jnp.asarray(INERTIA, jnp.float32)
     for tab in (pk.stormer_verlet, pk.lobatto_iiia_iiib4):
-        traj = jax.jit(lambda y: pk.integrate(_solver(tab), FIELD, y, 0.0, 0.01, 200, inertia, save_every=200))(y32)
+        traj = jax.jit(lambda y: pk.integrate(_method(tab), FIELD, y, 0.0, 0.01, 200, inertia, save_every=200))(y32)
         assert traj.ys.base.matrix.dtype == jnp.float32 and traj.ys.fiber.dtype == jnp.float32
         assert traj.result == pk.RESULTS.successful
         ref = reference(COTANGENT, y64, 2.0)

@@ -47,7 +47,7 @@ def body_field(bundle):
 @pytest.mark.parametrize("bundle", [pk.Semidirect(pk.SOn, "left"), pk.DirectProduct(pk.SOn)], ids=["semidirect", "direct"])
 @pytest.mark.parametrize("coords", [pk.Exp(), pk.Cayley()], ids=["exp", "cayley"])
 def test_order_on_so4(tab, bundle, coords):
-    solver = pk.PRKMK(bundle, coords, tab, form="body")
+    method = pk.PRKMK(bundle, coords, tab, form="body")
     y0 = pk.BundleElement(pk.SOn(jnp.asarray(G0)), jnp.asarray(M0))
     t_end = 1.0
     steps = (10, 20, 40, 80) if tab.order == 4 else (40, 80, 160, 320)
@@ -56,7 +56,7 @@ def test_order_on_so4(tab, bundle, coords):
 
     @jax.jit
     def run(dt, n):
-        return jax.lax.fori_loop(0, n, lambda i, y: solver.step(field, i * dt, y, dt)[0], y0)
+        return jax.lax.fori_loop(0, n, lambda i, y: method.step(field, i * dt, y, dt)[0], y0)
 
     errs = []
     for n in steps:

@@ -105,9 +105,9 @@ def _classical_prk(tab, q, p, t, h, args, iters=200):
 def test_classical_prk_on_vector_space(tab, coords):
     """On Cartesian(ℝ²) the PRKMK step is exactly Algorithm 4.1."""
     q0, p0 = np.array([1.2, -0.4]), np.array([0.3, 0.8])
-    solver = pk.PRKMK(pk.Cartesian(pk.VectorSpace), coords, tab, form="space")
+    method = pk.PRKMK(pk.Cartesian(pk.VectorSpace), coords, tab, form="space")
     y = pk.BundleElement(pk.VectorSpace(jnp.asarray(q0)), pk.VectorSpace(jnp.asarray(p0)))
-    y1, result, _ = solver.step(_pendulum, 0.3, y, 0.2, 0.7)
+    y1, result, _ = method.step(_pendulum, 0.3, y, 0.2, 0.7)
     assert result == pk.RESULTS.successful
     q1, p1 = _classical_prk(tab, q0, p0, 0.3, 0.2, 0.7)
     np.testing.assert_allclose(y1.base.value, q1, atol=1e-13)
@@ -137,9 +137,9 @@ AT_LEAST_DECLARED = {("semidirect-left", "Exp", 6), ("cotangent", "Exp", 6)}
 
 
 def _assert_declared_order(rep, coords, tab, form):
-    solver = pk.PRKMK(REPRESENTATIONS[rep], coords, tab, form=form)
+    method = pk.PRKMK(REPRESENTATIONS[rep], coords, tab, form=form)
     t_end, steps = CARTESIAN_GRIDS[tab.order] if (rep == "cartesian" and tab.order in CARTESIAN_GRIDS) else GRIDS[tab.order]
-    slope, errs = empirical_order(solver, t_end=t_end, steps=steps)
+    slope, errs = empirical_order(method, t_end=t_end, steps=steps)
     if (rep, type(coords).__name__, tab.order) in AT_LEAST_DECLARED and form == "body":
         assert slope >= tab.order - 0.15, (slope, errs)
     else:
@@ -163,17 +163,17 @@ def test_empirical_order_space_form(tab, rep, coords):
 @pytest.mark.parametrize("tab", pk.tableaus.ALL_TABLEAUS, ids=lambda t: t.name)
 def test_empirical_order_exact_dexp_inv(tab):
     """The exact dexp⁻¹ gives the same order as the truncated default."""
-    solver = pk.PRKMK(pk.Semidirect(pk.SO3, "right"), pk.Exp(truncation=None), tab, form="body")
+    method = pk.PRKMK(pk.Semidirect(pk.SO3, "right"), pk.Exp(truncation=None), tab, form="body")
     t_end, steps = GRIDS[tab.order]
-    slope, errs = empirical_order(solver, t_end=t_end, steps=steps)
+    slope, errs = empirical_order(method, t_end=t_end, steps=steps)
     assert abs(slope - tab.order) <= 0.15, (slope, errs)
 
 
 def test_too_short_truncation_loses_order():
     """Order 4 needs ad² in dexp⁻¹ (auto truncation q = 2); with q = 0 the
     Lobatto pair drops to order 2 — the truncation rule is not vacuous."""
-    solver = pk.PRKMK(pk.DirectProduct(pk.SO3), pk.Exp(truncation=0), pk.lobatto_iiia_iiib4, form="body")
-    slope, errs = empirical_order(solver, t_end=1.0, steps=(10, 20, 40, 80))
+    method = pk.PRKMK(pk.DirectProduct(pk.SO3), pk.Exp(truncation=0), pk.lobatto_iiia_iiib4, form="body")
+    slope, errs = empirical_order(method, t_end=1.0, steps=(10, 20, 40, 80))
     assert abs(slope - 2) < 0.3, (slope, errs)
 
 
@@ -183,20 +183,20 @@ def test_stage_guesses_change_the_iterations_not_the_step(tab):
     """Any starting guess converges to the same stage slopes (to the stage
     tolerance); the guess only changes how many iterations it takes."""
     bundle = pk.Cotangent(pk.SO3)
-    solver = pk.PRKMK(bundle, pk.Exp(), tab, form="body")
+    method = pk.PRKMK(bundle, pk.Exp(), tab, form="body")
     field = rigid_body_field(bundle, "body")
     y0 = initial_state(bundle)
     args = jnp.asarray(INERTIA)
-    y_default, _, result, n_default, stages = solver.step_with_stages(field, 0.0, y0, H, args)
+    y_default, _, result, n_default, stages = method.step_with_stages(field, 0.0, y0, H, args)
     assert result == pk.RESULTS.successful
     far = tuple((k_i + 0.3, l_i - 0.2) for k_i, l_i in stages)
-    y_far, _, _, n_far, _ = solver.step_with_stages(field, 0.0, y0, H, args, stage_guesses=far)
-    y_exact, _, _, n_exact, _ = solver.step_with_stages(field, 0.0, y0, H, args, stage_guesses=stages)
+    y_far, _, _, n_far, _ = method.step_with_stages(field, 0.0, y0, H, args, stage_guesses=far)
+    y_exact, _, _, n_exact, _ = method.step_with_stages(field, 0.0, y0, H, args, stage_guesses=stages)
     for y in (y_far, y_exact):
         np.testing.assert_allclose(y.fiber, y_default.fiber, rtol=0, atol=1e-12)
         np.testing.assert_allclose(y.base.matrix, y_default.base.matrix, rtol=0, atol=1e-12)
     # From the solution itself each implicit block confirms it in one iteration.
-    implicit_blocks = sum(isinstance(part, Implicit) for part in solver.stage_plan(field, 0.0, y0, args))
+    implicit_blocks = sum(isinstance(part, Implicit) for part in method.stage_plan(field, 0.0, y0, args))
     assert int(n_exact) == implicit_blocks and int(n_default) > implicit_blocks and int(n_far) > implicit_blocks
 
 
@@ -205,12 +205,12 @@ def test_integrate_extrapolated_guesses_save_iterations():
     moved by the change of the field (O(h²)); the plain start is the field at
     yₙ (O(h)). Same trajectory to the stage tolerance, fewer iterations."""
     bundle = pk.Cotangent(pk.SO3)
-    solver = pk.PRKMK(bundle, pk.Exp(), pk.lobatto_iiia_iiib4, form="body")
+    method = pk.PRKMK(bundle, pk.Exp(), pk.lobatto_iiia_iiib4, form="body")
     field = rigid_body_field(bundle, "body")
     y, args, h, steps = initial_state(bundle), jnp.asarray(INERTIA), 0.02, 50
-    traj = pk.integrate(solver, field, y, 0.0, h, steps, args, save_every=steps)
+    traj = pk.integrate(method, field, y, 0.0, h, steps, args, save_every=steps)
     plain_iterations = 0
-    step = eqx.filter_jit(solver.step)  # one compilation for the 50 steps
+    step = eqx.filter_jit(method.step)  # one compilation for the 50 steps
     for n in range(steps):
         y, result, iterations = step(field, jnp.asarray(n * h), y, h, args)
         assert result == pk.RESULTS.successful
@@ -221,12 +221,12 @@ def test_integrate_extrapolated_guesses_save_iterations():
 
 def test_stage_guesses_of_the_wrong_structure_are_refused():
     bundle = pk.Cotangent(pk.SO3)
-    solver = pk.PRKMK(bundle, pk.Exp(), pk.lobatto_iiia_iiib4, form="body")
+    method = pk.PRKMK(bundle, pk.Exp(), pk.lobatto_iiia_iiib4, form="body")
     field = rigid_body_field(bundle, "body")
     y0, args, zero = initial_state(bundle), jnp.asarray(INERTIA), jnp.zeros(3)
     with pytest.raises(ValueError, match="tuple of 3 algebra pairs"):
-        solver.step_with_stages(field, 0.0, y0, H, args, stage_guesses=((zero, zero),) * 2)
+        method.step_with_stages(field, 0.0, y0, H, args, stage_guesses=((zero, zero),) * 2)
     with pytest.raises(ValueError, match="every entry must be a pair"):
-        solver.step_with_stages(field, 0.0, y0, H, args, stage_guesses=((zero, jnp.zeros(4)),) * 3)
+        method.step_with_stages(field, 0.0, y0, H, args, stage_guesses=((zero, jnp.zeros(4)),) * 3)
     with pytest.raises(ValueError, match="field_at_start"):
-        solver.step_with_stages(field, 0.0, y0, H, args, field_at_start=(zero,))
+        method.step_with_stages(field, 0.0, y0, H, args, field_at_start=(zero,))

@@ -13,6 +13,9 @@ from .base import AbstractQuadraticGroup
 # (θ − sin θ)/θ³ and the dexp⁻¹ coefficient lose ~eps/θ² relative accuracy.
 _SMALL = 1e-2
 
+# so(3) ≅ ℝ³ (u ↦ û) and its dual, with any leading batch axes.
+Vector3 = Float[Array, "*batch 3"]
+
 
 def hat(u: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     """The skew matrix û with û v = u × v."""
@@ -106,14 +109,14 @@ class SO3(AbstractQuadraticGroup):
 
     # --- group -----------------------------------------------------------------
     @classmethod
-    def exp(cls, u: Float[Array, "*batch 3"]) -> Self:
+    def exp(cls, u: Vector3) -> Self:
         """Rodrigues' formula R = I + (sin θ/θ) û + ((1 − cos θ)/θ²) û²."""
         t2 = _theta_sq(u)
         a, b = _rotation_coefficients(t2)
         # û² = uuᵀ − θ² I
         return cls(_eye_plus(1.0 - b * t2, a, b, u))
 
-    def log(self) -> Float[Array, "*batch 3"]:
+    def log(self) -> Vector3:
         """Rotation vector with angle in [0, π], through the unit quaternion
         (Shepperd's branch choice, robust near θ = π)."""
         r = self.matrix
@@ -165,11 +168,11 @@ class SO3(AbstractQuadraticGroup):
     def identity_like(self) -> Self:
         return type(self)(jnp.broadcast_to(jnp.eye(3, dtype=self.matrix.dtype), self.matrix.shape))
 
-    def adjoint(self, u: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3"]:
+    def adjoint(self, u: Vector3) -> Vector3:
         """Ad_R u = R u."""
         return jnp.einsum("...ij,...j->...i", self.matrix, u)
 
-    def algebra_zeros(self) -> Float[Array, "*batch 3"]:
+    def algebra_zeros(self) -> Vector3:
         return jnp.zeros(self.matrix.shape[:-1], self.matrix.dtype)
 
     def check(self) -> Self:
@@ -183,12 +186,12 @@ class SO3(AbstractQuadraticGroup):
 
     # --- algebra ---------------------------------------------------------------
     @classmethod
-    def bracket(cls, u, v):
+    def bracket(cls, u: Vector3, v: Vector3) -> Vector3:
         """[û, v̂] = (u × v)^."""
         return jnp.cross(u, v)
 
     @classmethod
-    def dexp(cls, u, v):
+    def dexp(cls, u: Vector3, v: Vector3) -> Vector3:
         """dexp_u v = v + ((1 − cos θ)/θ²) u×v + ((θ − sin θ)/θ³) u×(u×v)."""
         t2 = _theta_sq(u)
         a, b = _rotation_coefficients(t2)
@@ -198,7 +201,7 @@ class SO3(AbstractQuadraticGroup):
         return v + b[..., None] * jnp.cross(u, v) + c[..., None] * _cross_twice(u, v)
 
     @classmethod
-    def dexp_inv(cls, u, v):
+    def dexp_inv(cls, u: Vector3, v: Vector3) -> Vector3:
         """dexp_u⁻¹ v = v − ½ u×v + ((1 − (θ/2)cot(θ/2))/θ²) u×(u×v), |θ| < 2π."""
         t2 = _theta_sq(u)
 
@@ -210,26 +213,26 @@ class SO3(AbstractQuadraticGroup):
         return v - 0.5 * jnp.cross(u, v) + c[..., None] * _cross_twice(u, v)
 
     @classmethod
-    def exp_adjoint(cls, u, x):
+    def exp_adjoint(cls, u: Vector3, x: Vector3) -> Vector3:
         """exp(û) x = x + (sin θ/θ) u×x + ((1 − cos θ)/θ²) u×(u×x) (Rodrigues)."""
         a, b = _rotation_coefficients(_theta_sq(u))
         return x + a[..., None] * jnp.cross(u, x) + b[..., None] * _cross_twice(u, x)
 
     @classmethod
-    def inverse_shifted_ad(cls, u, v, alpha):
+    def inverse_shifted_ad(cls, u: Vector3, v: Vector3, alpha: float) -> Vector3:
         """(I + αû)⁻¹ v = (v − α u×v + α²(u·v) u)/(1 + α²θ²)."""
         alpha2 = alpha * alpha
         return (v - alpha * jnp.cross(u, v) + alpha2 * _dot(u, v)[..., None] * u) / (1.0 + alpha2 * _theta_sq(u))[..., None]
 
     @classmethod
-    def cayley(cls, u) -> Self:
+    def cayley(cls, u: Vector3) -> Self:
         """cay(u) = I + 4/(4 + θ²) (û + û²/2)."""
         t2 = _theta_sq(u)
         k = 4.0 / (4.0 + t2)
         # û + û²/2 = û + (uuᵀ − θ² I)/2
         return cls(_eye_plus(1.0 - 0.5 * k * t2, k, 0.5 * k, u))
 
-    def cayley_inverse(self):
+    def cayley_inverse(self) -> Vector3:
         """cay⁻¹(R) = 2 vee(R − Rᵀ)/(1 + tr R): for R = cay(u), R − Rᵀ = 2kû and
         1 + tr R = 4k with k = 4/(4 + θ²)."""
         r = self.matrix
@@ -237,18 +240,18 @@ class SO3(AbstractQuadraticGroup):
         return 2.0 * vee(r - jnp.swapaxes(r, -1, -2)) / (1.0 + trace)[..., None]
 
     @classmethod
-    def dcayley(cls, u, v):
+    def dcayley(cls, u: Vector3, v: Vector3) -> Vector3:
         """dcay_u v = 4/(4 + θ²) (v + ½ u×v)."""
         k = 4.0 / (4.0 + _theta_sq(u))
         return k[..., None] * (v + 0.5 * jnp.cross(u, v))
 
     @classmethod
-    def dcayley_inv(cls, u, v):
+    def dcayley_inv(cls, u: Vector3, v: Vector3) -> Vector3:
         """dcay_u⁻¹ v = v − ½ u×v + ¼ (u·v) u  (since ûv̂û = −(u·v)û)."""
         return v - 0.5 * jnp.cross(u, v) + 0.25 * _dot(u, v)[..., None] * u
 
     @classmethod
-    def cayley_adjoint(cls, u, x):
+    def cayley_adjoint(cls, u: Vector3, x: Vector3) -> Vector3:
         """cay(û) x = x + 4/(4 + θ²) (u×x + ½ u×(u×x))."""
         k = 4.0 / (4.0 + _theta_sq(u))
         return x + k[..., None] * (jnp.cross(u, x) + 0.5 * _cross_twice(u, x))

@@ -24,6 +24,10 @@ SERIES_RADIUS = 1.75
 
 
 NEAR_IDENTITY = 0.1
+
+# so(n) as skew-symmetric n×n matrices (and its dual, by the trace pairing),
+# with any leading batch axes.
+Skew = Float[Array, "*batch n n"]
 """‖I − S‖_F below which `SOn.log` uses the power series of g(S)."""
 
 
@@ -77,13 +81,13 @@ class SOn(AbstractQuadraticGroup):
             raise ValueError(f"SOn needs a (..., n, n) matrix, got shape {self.matrix.shape}.")
 
     @classmethod
-    def exp(cls, u: Float[Array, "*batch n n"]) -> Self:
+    def exp(cls, u: Skew) -> Self:
         expm = jsl.expm
         for _ in range(u.ndim - 2):
             expm = jax.vmap(expm)
         return cls(expm(u))
 
-    def log(self) -> Float[Array, "*batch n n"]:
+    def log(self) -> Skew:
         """Principal logarithm (angles ≤ π) from the split R = S + A.
 
         S = (R + Rᵀ)/2 and A = (R − Rᵀ)/2 commute and, in each invariant plane
@@ -146,10 +150,10 @@ class SOn(AbstractQuadraticGroup):
     def identity_like(self) -> Self:
         return type(self)(jnp.broadcast_to(_eye_like(self.matrix), self.matrix.shape))
 
-    def adjoint(self, u):
+    def adjoint(self, u: Skew) -> Skew:
         return self.matrix @ u @ _transpose(self.matrix)
 
-    def algebra_zeros(self):
+    def algebra_zeros(self) -> Skew:
         return jnp.zeros_like(self.matrix)
 
     def check(self) -> Self:
@@ -162,11 +166,11 @@ class SOn(AbstractQuadraticGroup):
         return type(self)(bjorck_step(self.matrix))
 
     @classmethod
-    def bracket(cls, u, v):
+    def bracket(cls, u: Skew, v: Skew) -> Skew:
         return _commutator(u, v)
 
     @classmethod
-    def dexp(cls, u, v):
+    def dexp(cls, u: Skew, v: Skew) -> Skew:
         """From the Fréchet derivative L(u, v) of expm: dexp_u v = L(u, v) e^{−u}."""
         u, v = jnp.broadcast_arrays(u, v)
         frechet = jsl.expm_frechet
@@ -176,7 +180,7 @@ class SOn(AbstractQuadraticGroup):
         return deriv @ _transpose(expu)
 
     @classmethod
-    def dexp_inv(cls, u, v):
+    def dexp_inv(cls, u: Skew, v: Skew) -> Skew:
         """dexp_u⁻¹ v = Σ B_k/k! ad_uᵏ v, exact for every u where dexp_u is
         invertible (no eigenvalue difference of u a nonzero multiple of 2πi).
 
@@ -200,11 +204,11 @@ class SOn(AbstractQuadraticGroup):
         return jnp.where(large[..., None, None], closed, series)
 
     @classmethod
-    def exp_adjoint(cls, u, x):
+    def exp_adjoint(cls, u: Skew, x: Skew) -> Skew:
         return cls.exp(u).adjoint(x)
 
     @classmethod
-    def inverse_shifted_ad(cls, u, v, alpha):
+    def inverse_shifted_ad(cls, u: Skew, v: Skew, alpha: float) -> Skew:
         """Dense solve on the flattened algebra (ad_u as an n²×n² matrix)."""
         if u.ndim > 2:
             return jax.vmap(lambda uu, vv: cls.inverse_shifted_ad(uu, vv, alpha))(u, v)
@@ -213,27 +217,27 @@ class SOn(AbstractQuadraticGroup):
         return jnp.linalg.solve(eye + alpha * ad, v.reshape(-1)).reshape(v.shape)
 
     @classmethod
-    def cayley(cls, u) -> Self:
+    def cayley(cls, u: Skew) -> Self:
         eye = _eye_like(u)
         return cls(jnp.linalg.solve(eye - 0.5 * u, eye + 0.5 * u))
 
-    def cayley_inverse(self):
+    def cayley_inverse(self) -> Skew:
         r = self.matrix
         eye = _eye_like(r)
         # (R + 1)⁻¹ and R − 1 commute; the solve keeps the result skew up to round-off.
         return 2.0 * jnp.linalg.solve(r + eye, r - eye)
 
     @classmethod
-    def dcayley(cls, u, v):
+    def dcayley(cls, u: Skew, v: Skew) -> Skew:
         eye = _eye_like(u)
         left = jnp.linalg.solve(eye - 0.5 * u, v)
         # X (1 + u/2)⁻¹ = ((1 + u/2)⁻ᵀ Xᵀ)ᵀ
         return _transpose(jnp.linalg.solve(_transpose(eye + 0.5 * u), _transpose(left)))
 
     @classmethod
-    def dcayley_inv(cls, u, v):
+    def dcayley_inv(cls, u: Skew, v: Skew) -> Skew:
         return v - 0.5 * _commutator(u, v) - 0.25 * u @ v @ u
 
     @classmethod
-    def cayley_adjoint(cls, u, x):
+    def cayley_adjoint(cls, u: Skew, x: Skew) -> Skew:
         return cls.cayley(u).adjoint(x)

@@ -9,6 +9,9 @@ from jaxtyping import Array, Float
 from ._util import as_array, check_floating
 from .base import AbstractQuadraticGroup
 
+# ℝⁿ is its own algebra (and dual); `n` stands for any trailing shape.
+Vector = Float[Array, "*batch n"]
+
 
 class VectorSpace(AbstractQuadraticGroup):
     """An element of the abelian group (ℝⁿ, +).
@@ -27,10 +30,10 @@ class VectorSpace(AbstractQuadraticGroup):
     bi_invariant_pairing: ClassVar[bool] = True
 
     @classmethod
-    def exp(cls, u) -> Self:
+    def exp(cls, u: Vector) -> Self:
         return cls(u)
 
-    def log(self):
+    def log(self) -> Vector:
         return self.value
 
     def multiply(self, other: Self) -> Self:  # pyright: ignore[reportIncompatibleMethodOverride]  # pyright binds the base's Self in a parameter to the base class
@@ -42,10 +45,10 @@ class VectorSpace(AbstractQuadraticGroup):
     def identity_like(self) -> Self:
         return type(self)(jnp.zeros_like(self.value))
 
-    def adjoint(self, u):
+    def adjoint(self, u: Vector) -> Vector:
         return u
 
-    def algebra_zeros(self):
+    def algebra_zeros(self) -> Vector:
         return jnp.zeros_like(self.value)
 
     def project(self) -> Self:
@@ -58,40 +61,40 @@ class VectorSpace(AbstractQuadraticGroup):
         return type(self)(eqx.error_if(self.value, ~jnp.all(jnp.isfinite(self.value)), "VectorSpace element is not finite (NaN or inf)."))
 
     @classmethod
-    def bracket(cls, u, v):
+    def bracket(cls, u: Vector, v: Vector) -> Vector:
         return jnp.zeros_like(u)
 
     @classmethod
-    def dexp(cls, u, v):
+    def dexp(cls, u: Vector, v: Vector) -> Vector:
         return v
 
     @classmethod
-    def dexp_inv(cls, u, v):
+    def dexp_inv(cls, u: Vector, v: Vector) -> Vector:
         return v
 
     @classmethod
-    def exp_adjoint(cls, u, x):
+    def exp_adjoint(cls, u: Vector, x: Vector) -> Vector:
         return x
 
     @classmethod
-    def inverse_shifted_ad(cls, u, v, alpha):
+    def inverse_shifted_ad(cls, u: Vector, v: Vector, alpha: float) -> Vector:
         return v
 
     @classmethod
-    def cayley(cls, u) -> Self:
+    def cayley(cls, u: Vector) -> Self:
         return cls(u)
 
-    def cayley_inverse(self):
+    def cayley_inverse(self) -> Vector:
         return self.value
 
     @classmethod
-    def dcayley(cls, u, v):
+    def dcayley(cls, u: Vector, v: Vector) -> Vector:
         return v
 
     @classmethod
-    def dcayley_inv(cls, u, v):
+    def dcayley_inv(cls, u: Vector, v: Vector) -> Vector:
         return v
 
     @classmethod
-    def cayley_adjoint(cls, u, x):
+    def cayley_adjoint(cls, u: Vector, x: Vector) -> Vector:
         return x
