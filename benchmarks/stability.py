@@ -97,21 +97,6 @@ METHODS = {
 }
 
 
-def classify(q, pi, converged, inertia):
-    """Per sweep entry: 'bounded', 'nonfinite', 'implicit stage failed' or 'energy drift'."""
-    out = []
-    for k in range(pi.shape[0]):
-        if not converged[k] and np.all(np.isfinite(pi[k])):
-            out.append("implicit stage failed")
-            continue
-        if not np.all(np.isfinite(pi[k])) or not np.all(np.isfinite(q[k])):
-            out.append("nonfinite")
-            continue
-        energy = 0.5 * np.sum(pi[k] ** 2 / inertia, axis=-1)
-        out.append("bounded" if np.max(np.abs(energy / energy[0] - 1)) < 0.1 else "energy drift")
-    return out
-
-
 def main(argv=None):
     args, out = C.cli(__doc__, argv)
     t_end = 20.0 if args.quick else 1000.0
@@ -130,18 +115,14 @@ def main(argv=None):
             fn = jax.vmap(make(n, every), in_axes=(0, 0, None))
             compiled, compile_s = C.compile_fn(fn, qs, pis, jnp.asarray(inertia))
             q, pi, converged = (np.asarray(x) for x in compiled(qs, pis, jnp.asarray(inertia)))
-            status = classify(q, pi, converged, inertia)
-            bounded = [hw for hw, st in zip(hw_targets, status) if st == "bounded"]
-            first_fail = next(
-                ((hw, st) for hw, st in zip(hw_targets, status) if st != "bounded"),
-                (float("nan"), "none"),
-            )
-            # The threshold: the largest h·|Ω₀| below the first failure.
-            below = [hw for hw in bounded if not hw > first_fail[0]]
+            energy = pk.diagnostics.energy(pi, pi / inertia)
+            codes = np.asarray(pk.diagnostics.run_status(energy, converged, (q, pi)))
+            status = [pk.diagnostics.RUN_STATUS[c] for c in codes]
+            failed = np.flatnonzero(codes != 0)
             thresholds[(scene, name)] = dict(
-                threshold=max(below) if below else 0.0,
-                first_failure=first_fail[0],
-                reason=first_fail[1],
+                threshold=pk.diagnostics.stability_threshold(hw_targets, codes),
+                first_failure=float(hw_targets[failed[0]]) if failed.size else float("nan"),
+                reason=status[failed[0]] if failed.size else "none",
                 compile_s=compile_s,
             )
             for hw, s, st in zip(hw_targets, scales, status):
@@ -156,7 +137,7 @@ def main(argv=None):
                 )
             print(
                 f"{scene:16s} {name:20s} stable to h|Ω₀| = {thresholds[(scene, name)]['threshold']:6.3f}; "
-                f"first failure at {first_fail[0]:6.3f} ({first_fail[1]})",
+                f"first failure at {thresholds[(scene, name)]['first_failure']:6.3f} ({thresholds[(scene, name)]['reason']})",
                 flush=True,
             )
     with open(out / "stability.csv", "w", newline="") as f:

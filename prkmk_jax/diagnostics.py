@@ -1,4 +1,5 @@
-"""Invariants of rigid-body trajectories and the symplecticity defect of a step map.
+"""Invariants of rigid-body trajectories, the symplecticity defect of a step
+map, and how the runs of a stability sweep ended.
 
 Everything here takes the body attitude g ∈ SO(n) and body angular momentum
 Π (arrays with any leading axes, e.g. a time axis): a 3-vector for SO(3), or a
@@ -11,7 +12,8 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from .groups import SO3
 from .groups._util import orthogonality_defect as _orthogonality_defect
@@ -51,6 +53,41 @@ def max_drift(values: Float[Array, " t *c"], relative: bool = False) -> Array:
     if relative:
         drift = drift / jnp.max(jnp.abs(values[0]))
     return drift
+
+
+RUN_STATUS = ("bounded", "energy drift", "implicit stage failed", "non-finite")
+"""What `run_status` calls its codes 0, 1, 2, 3."""
+
+
+def run_status(
+    energy: Float[Array, "runs t"], converged: Bool[Array, " runs"], states: PyTree[Array] = None, tolerance: float = 0.1
+) -> Int[Array, " runs"]:
+    """How each of a batch of runs ended, as an index into `RUN_STATUS`.
+
+    3 (non-finite) if the energy or any leaf of `states` (leading axis: the
+    runs) is not finite somewhere; else 2 if an implicit stage did not
+    converge (`converged` false); else 0 (bounded) if
+    max_t |H(t)/H(0) − 1| < `tolerance`, and 1 (energy drift) if not.
+    """
+    energy = jnp.asarray(energy)
+    runs = energy.shape[0]
+    finite = jnp.all(jnp.isfinite(energy), axis=1)
+    for leaf in jax.tree.leaves(states):
+        finite = finite & jnp.all(jnp.isfinite(jnp.reshape(leaf, (runs, -1))), axis=1)
+    drift = jnp.max(jnp.abs(energy / energy[:, :1] - 1), axis=1)
+    return jnp.where(~finite, 3, jnp.where(~jnp.asarray(converged), 2, jnp.where(drift < tolerance, 0, 1)))
+
+
+def stability_threshold(values: Float[Array, " runs"], status: Int[Array, " runs"]) -> float:
+    """The largest of the ascending sweep `values` before the first run that
+    did not stay bounded (status ≠ 0 in `run_status`); 0.0 if the first run
+    fails, the last value if none does."""
+    values_, status_ = np.asarray(values), np.asarray(status)
+    if values_.shape != status_.shape or np.any(np.diff(values_) <= 0):
+        raise ValueError("stability_threshold needs ascending values, one status per value.")
+    failed = np.flatnonzero(status_ != 0)
+    first = failed[0] if failed.size else values_.size
+    return float(values_[first - 1]) if first > 0 else 0.0
 
 
 def _dexp_left_matrix(a):

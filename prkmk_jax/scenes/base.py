@@ -7,7 +7,7 @@ embedding ℝ⁹×ℝ³ for the solvers it is compared with.
 """
 
 import abc
-from typing import Literal
+from typing import ClassVar, Literal
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -75,13 +75,8 @@ class AbstractBodyOnTStarSO3(AbstractScene):
     """A scene on T*SO(3) (`Cotangent(SO3)`) in body form: state (Q, Π),
     embedded as (Q row-major, Π)."""
 
-    @property
-    def bundle(self) -> AbstractBundle:  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a property implements an AbstractVar
-        return Cotangent(SO3)
-
-    @property
-    def form(self) -> Literal["space", "body"]:  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a property implements an AbstractVar
-        return "body"
+    bundle: ClassVar[AbstractBundle] = Cotangent(SO3)  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox lets a ClassVar implement an AbstractVar
+    form: ClassVar[Literal["space", "body"]] = "body"  # pyright: ignore[reportIncompatibleVariableOverride]  # as above
 
     def to_embedding(self, y: BundleElement) -> Float[Array, "*batch 12"]:
         return rotation_and_vector_embedding(y)

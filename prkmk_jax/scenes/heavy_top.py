@@ -14,21 +14,22 @@ as well.
 
 On the left-trivialised cotangent bundle, body form, the product supplies
 Π × Ω, so the generator is (ξ, η) = (Ω, Γ × ℓ): unlike the free body, the
-fiber moves on its own (η ≠ 0).
+fiber moves on its own (η ≠ 0). On G×g (`DirectProduct`) it is
+(Ω, Π × Ω + Γ × ℓ).
 
 `SphericalTop` is the isotropic case on G×g, where the field is separable.
 """
 
-from typing import Literal
+from typing import ClassVar, Literal
 
 import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .. import diagnostics
-from ..bundles import AbstractBundle, BundleElement, DirectProduct
+from ..bundles import AbstractBundle, BundleElement, Cotangent, DirectProduct
 from ..groups import SO3, hat
-from .base import AbstractBodyOnTStarSO3, AbstractScene, rotation_and_vector_embedding, rotation_matrix
+from .base import AbstractScene, rotation_and_vector_embedding, rotation_matrix
 
 
 class TopParameters(eqx.Module):
@@ -47,12 +48,30 @@ def _vertical(q: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     return q[..., 2, :]
 
 
-class HeavyTop(AbstractBodyOnTStarSO3):
-    """The heavy top on `Cotangent(SO3)`, body form; `args` is `TopParameters`."""
+class HeavyTop(AbstractScene):
+    """The heavy top in body form; `args` is `TopParameters`.
+
+    `bundle` is `Cotangent(SO3)` (default), where the product supplies
+    Π × Ω and the generator is (Ω, Γ × ℓ), or `DirectProduct(SO3)`, with
+    (Ω, Π × Ω + Γ × ℓ). On G×g the fiber moves by h Σ bᵢ ηᵢ alone (the
+    direct product's dexp⁻¹ and Cayley's are the identity on the fiber), so
+    a Lagrange top's spin Π₃, whose slope (Π × Ω + Γ × ℓ)₃ vanishes, is kept
+    to round-off by every method. On T*SO(3) the fiber is also turned by
+    Ad*, and the spin's error is the method's."""
+
+    bundle: AbstractBundle = eqx.field(default_factory=lambda: Cotangent(SO3))
+    form: ClassVar[Literal["space", "body"]] = "body"  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox lets a ClassVar implement an AbstractVar
+
+    def __check_init__(self):
+        if not isinstance(self.bundle, (Cotangent, DirectProduct)) or self.bundle.base is not SO3:
+            raise TypeError(f"HeavyTop lives on Cotangent(SO3) or DirectProduct(SO3), got {self.bundle!r}.")
 
     def __call__(self, t, y: BundleElement, args: TopParameters):
         omega = y.fiber / args.inertia
-        return omega, jnp.cross(_vertical(rotation_matrix(y.base)), args.lever)
+        torque = jnp.cross(_vertical(rotation_matrix(y.base)), args.lever)
+        if isinstance(self.bundle, DirectProduct):
+            return omega, jnp.cross(y.fiber, omega) + torque
+        return omega, torque
 
     def invariants(self, y: BundleElement, args: TopParameters) -> dict[str, Array]:
         q, pi = rotation_matrix(y.base), y.fiber
@@ -69,6 +88,9 @@ class HeavyTop(AbstractBodyOnTStarSO3):
         omega = pi / args.inertia
         return jnp.concatenate([(q @ hat(omega)).ravel(), jnp.cross(pi, omega) + jnp.cross(_vertical(q), args.lever)])
 
+    def to_embedding(self, y: BundleElement) -> Float[Array, "*batch 12"]:
+        return rotation_and_vector_embedding(y)
+
 
 class SphericalTop(AbstractScene):
     """A heavy top whose inertia about the pivot is isotropic (I = α·1), on
@@ -84,13 +106,8 @@ class SphericalTop(AbstractScene):
     orthogonal to ℓ) are kept by the exact flow.
     """
 
-    @property
-    def bundle(self) -> AbstractBundle:  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a property implements an AbstractVar
-        return DirectProduct(SO3)
-
-    @property
-    def form(self) -> Literal["space", "body"]:  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a property implements an AbstractVar
-        return "body"
+    bundle: ClassVar[AbstractBundle] = DirectProduct(SO3)  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox lets a ClassVar implement an AbstractVar
+    form: ClassVar[Literal["space", "body"]] = "body"  # pyright: ignore[reportIncompatibleVariableOverride]  # as above
 
     def __call__(self, t, y: BundleElement, args: TopParameters):
         _check_isotropic(args)
