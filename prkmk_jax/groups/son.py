@@ -66,6 +66,54 @@ def _eye_like(m):
     return jnp.eye(m.shape[-1], dtype=m.dtype)
 
 
+@jax.custom_jvp
+def _log(r):
+    """The principal logarithm's value (`SOn.log`)."""
+    n = r.shape[-1]
+    sym = 0.5 * (r + _transpose(r))
+    skew = 0.5 * (r - _transpose(r))
+    eye = _eye_like(r)
+    distance = eye - sym
+    near_identity = jnp.sum(distance**2, axis=(-2, -1)) < NEAR_IDENTITY**2
+    # Where the series is used, the eigendecomposition sees a harmless matrix.
+    harmless = jnp.diag(jnp.linspace(-0.5, 0.5, n, dtype=r.dtype))
+    c, w = jnp.linalg.eigh(jnp.where(near_identity[..., None, None], harmless, sym))
+    c = jnp.clip(c, -1.0, 1.0)
+    one_minus = 1.0 - c
+    small = one_minus < 1e-6
+    safe = jnp.where(small, 0.5, c)
+    # arccos(c)/sin(arccos c); near c = 1: 1 + (1 − c)/3 + 2(1 − c)²/15.
+    # (Near c = −1 it grows without bound; the plane of such an angle is
+    # handled below.)
+    g = jnp.where(small, 1.0 + one_minus / 3 + 2 * one_minus**2 / 15, jnp.arccos(safe) / jnp.sqrt(jnp.maximum(1.0 - safe**2, 1e-300)))
+    # The plane of the largest angle (eigenvalues 0 and 1, ascending).
+    a, b = w[..., :, 0], w[..., :, 1]
+    sin_ab = jnp.einsum("...i,...ij,...j->...", b, skew, a)
+    sign = jnp.where(sin_ab >= 0, 1.0, -1.0).astype(r.dtype)
+    cos_ab = 0.5 * (c[..., 0] + c[..., 1])
+    theta = jnp.arctan2(jnp.abs(sin_ab), cos_ab)
+    plane = (sign * theta)[..., None, None] * (b[..., :, None] * a[..., None, :] - a[..., :, None] * b[..., None, :])
+    gap = c[..., 2] - c[..., 1] if n > 2 else jnp.ones_like(cos_ab)
+    near_pi = (c[..., 0] < -0.9) & (gap > 1e-4)
+    keep = jnp.where(near_pi[..., None] & (jnp.arange(n) < 2), 0.0, g)
+    out = ((w * keep[..., None, :]) @ _transpose(w)) @ skew
+    general = 0.5 * (out - _transpose(out)) + jnp.where(near_pi[..., None, None], plane, 0.0)
+    series = _log_series_factor(distance) @ skew
+    series = 0.5 * (series - _transpose(series))
+    return jnp.where(near_identity[..., None, None], series, general)
+
+
+@_log.defjvp
+def _log_jvp(primals, tangents):
+    """R = exp(u) gives dR Rᵀ = dexp_u(du) (right-trivialised), so
+    du = dexp⁻¹_u(dR Rᵀ): finite wherever log is differentiable (angles < π),
+    including the repeated eigenvalues of S that every rotation has."""
+    (r,), (dr,) = primals, tangents
+    u = _log(r)
+    right = dr @ _transpose(r)
+    return u, SOn.dexp_inv(u, 0.5 * (right - _transpose(right)))
+
+
 class SOn(AbstractQuadraticGroup):
     """A rotation in SO(n); n is read off the matrix shape."""
 
@@ -105,41 +153,12 @@ class SOn(AbstractQuadraticGroup):
           logarithm. Two angles that are both near π and nearly equal make
           log ill-conditioned (at −I in SO(4) it is not unique); the general
           formula is used then.
+
+        Its derivative is not that of these formulas (the eigendecomposition
+        of S, whose eigenvalues come in equal pairs, has none) but
+        d log R = dexp⁻¹_u(dR Rᵀ), u = log R, from R = exp(u).
         """
-        r = self.matrix
-        n = r.shape[-1]
-        sym = 0.5 * (r + _transpose(r))
-        skew = 0.5 * (r - _transpose(r))
-        eye = _eye_like(r)
-        distance = eye - sym
-        near_identity = jnp.sum(distance**2, axis=(-2, -1)) < NEAR_IDENTITY**2
-        # Double where: the eigendecomposition sees a harmless matrix where the
-        # series is used, so neither its value nor its gradient leaks in.
-        harmless = jnp.diag(jnp.linspace(-0.5, 0.5, n, dtype=r.dtype))
-        c, w = jnp.linalg.eigh(jnp.where(near_identity[..., None, None], harmless, sym))
-        c = jnp.clip(c, -1.0, 1.0)
-        one_minus = 1.0 - c
-        small = one_minus < 1e-6
-        safe = jnp.where(small, 0.5, c)
-        # arccos(c)/sin(arccos c); near c = 1: 1 + (1 − c)/3 + 2(1 − c)²/15.
-        # (Near c = −1 it grows without bound; the plane of such an angle is
-        # handled below.)
-        g = jnp.where(small, 1.0 + one_minus / 3 + 2 * one_minus**2 / 15, jnp.arccos(safe) / jnp.sqrt(jnp.maximum(1.0 - safe**2, 1e-300)))
-        # The plane of the largest angle (eigenvalues 0 and 1, ascending).
-        a, b = w[..., :, 0], w[..., :, 1]
-        sin_ab = jnp.einsum("...i,...ij,...j->...", b, skew, a)
-        sign = jnp.where(sin_ab >= 0, 1.0, -1.0).astype(r.dtype)
-        cos_ab = 0.5 * (c[..., 0] + c[..., 1])
-        theta = jnp.arctan2(jnp.abs(sin_ab), cos_ab)
-        plane = (sign * theta)[..., None, None] * (b[..., :, None] * a[..., None, :] - a[..., :, None] * b[..., None, :])
-        gap = c[..., 2] - c[..., 1] if n > 2 else jnp.ones_like(cos_ab)
-        near_pi = (c[..., 0] < -0.9) & (gap > 1e-4)
-        keep = jnp.where(near_pi[..., None] & (jnp.arange(n) < 2), 0.0, g)
-        out = ((w * keep[..., None, :]) @ _transpose(w)) @ skew
-        general = 0.5 * (out - _transpose(out)) + jnp.where(near_pi[..., None, None], plane, 0.0)
-        series = _log_series_factor(distance) @ skew
-        series = 0.5 * (series - _transpose(series))
-        return jnp.where(near_identity[..., None, None], series, general)
+        return _log(self.matrix)
 
     def multiply(self, other: Self) -> Self:  # pyright: ignore[reportIncompatibleMethodOverride]  # pyright binds the base's Self in a parameter to the base class
         return type(self)(self.matrix @ other.matrix)
