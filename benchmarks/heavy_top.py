@@ -4,7 +4,7 @@ The scene is `prkmk_jax.scenes.HeavyTop` (Π' = Π × Ω + Γ × ℓ, Γ = Qᵀe
 fiber moves on its own (η ≠ 0), unlike the free body. Parameters: principal
 moments (1.0, 0.8, 0.4), ℓ = m g χ = (0.1, 0.2, 0.9), Q₀ a random rotation
 (seed 5), Π₀ = (0.3, −0.4, 1.5). PRKMK methods run through `integrate`
-(T*SO(3), body form); the peers are diffrax (Tsit5, Dopri8, adaptive) on the
+(T*SO(3), body form, or G×g where the name says so); the peers are diffrax (Tsit5, Dopri8, adaptive) on the
 embedding ℝ⁹×ℝ³ through `HeavyTop.embedding_field`, and SciPy DOP853.
 
 * Long time, T = 1000: the largest error of the energy H = ½Π·Ω + ℓ·Γ and of
@@ -32,29 +32,33 @@ from prkmk_jax.scenes import HeavyTop, TopParameters, random_rotation
 
 jax.config.update("jax_enable_x64", True)  # before the module's arrays are made
 TOP = HeavyTop()
+TOP_ON_G_X_G = HeavyTop(pk.DirectProduct(pk.SO3))
 ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
 Y0 = pk.BundleElement(pk.SO3(jnp.asarray(random_rotation(5))), jnp.array([0.3, -0.4, 1.5]))
 Z0 = TOP.to_embedding(Y0)
 
 
 def prkmk_methods():
+    """name: (scene, method); the scene is the vector field of its bundle."""
     sv = TOP.method(pk.stormer_verlet)
     symmetric = pk.Symmetrized(sv)
     return {
-        "PRKMK SV exp": sv,
-        "PRKMK SV cayley": TOP.method(pk.stormer_verlet, pk.Cayley()),
-        "PRKMK Symmetrized SV": symmetric,
-        "PRKMK Symmetrized SV ∘ triple jump": pk.Composition(symmetric, pk.yoshida_triple_jump),
-        "PRKMK Lobatto4": TOP.method(pk.lobatto_iiia_iiib4),
+        "PRKMK SV exp": (TOP, sv),
+        "PRKMK SV cayley": (TOP, TOP.method(pk.stormer_verlet, pk.Cayley())),
+        "PRKMK Symmetrized SV": (TOP, symmetric),
+        "PRKMK Symmetrized SV ∘ triple jump": (TOP, pk.Composition(symmetric, pk.yoshida_triple_jump)),
+        "PRKMK Lobatto4": (TOP, TOP.method(pk.lobatto_iiia_iiib4)),
+        "PRKMK SV exp, G×g": (TOP_ON_G_X_G, TOP_ON_G_X_G.method(pk.stormer_verlet)),
+        "PRKMK Lobatto4, G×g": (TOP_ON_G_X_G, TOP_ON_G_X_G.method(pk.lobatto_iiia_iiib4)),
     }
 
 
-def _prkmk_run(method, h, t_end, every):
+def _prkmk_run(scene, method, h, t_end, every):
     n = int(round(t_end / h))
 
     def run(y0, args):
-        ys = pk.integrate(method, TOP, y0, 0.0, h, n, args, save_every=every).ys
-        return TOP.to_embedding(ys)
+        ys = pk.integrate(method, scene, y0, 0.0, h, n, args, save_every=every).ys
+        return scene.to_embedding(ys)
 
     return run
 
@@ -99,10 +103,10 @@ def long_time(quick):
     t_end = 50.0 if quick else 1000.0
     ts = jnp.arange(0.0, t_end + 0.5)
     rows = []
-    steps = {"PRKMK Symmetrized SV ∘ triple jump": (0.1,), "PRKMK Lobatto4": (0.1, 0.05)}
-    for name, method in prkmk_methods().items():
+    steps = {"PRKMK Symmetrized SV ∘ triple jump": (0.1,), "PRKMK Lobatto4": (0.1, 0.05), "PRKMK Lobatto4, G×g": (0.1, 0.05)}
+    for name, (scene, method) in prkmk_methods().items():
         for h in (0.1,) if quick else steps.get(name, (0.05, 0.025)):
-            zs, wall, compile_s = _timed(_prkmk_run(method, h, t_end, int(round(1 / h))), Y0, ARGS, repeats=1 if quick else 3)
+            zs, wall, compile_s = _timed(_prkmk_run(scene, method, h, t_end, int(round(1 / h))), Y0, ARGS, repeats=1 if quick else 3)
             rows.append(dict(method=name, parameter=h, wall_s=wall, compile_s=compile_s, **_errors(zs)))
             print(f"{name:36s} h={h:<6g} {wall:8.3f} s  {rows[-1]}", flush=True)
     for name, solver in (("diffrax Tsit5", diffrax.Tsit5()), ("diffrax Dopri8", diffrax.Dopri8())):
@@ -129,10 +133,11 @@ def work_precision(quick):
     sweeps = {
         "PRKMK Symmetrized SV ∘ triple jump": [25, 50, 100, 200],
         "PRKMK Lobatto4": [25, 50, 100, 200],
+        "PRKMK Lobatto4, G×g": [25, 50, 100, 200],
     }
-    for name, method in prkmk_methods().items():
+    for name, (scene, method) in prkmk_methods().items():
         for n in [50] if quick else sweeps.get(name, [100, 200, 400, 800]):
-            zs, wall, _ = _timed(_prkmk_run(method, t_end / n, t_end, n), Y0, ARGS, repeats=1 if quick else 5)
+            zs, wall, _ = _timed(_prkmk_run(scene, method, t_end / n, t_end, n), Y0, ARGS, repeats=1 if quick else 5)
             rows.append(dict(method=name, parameter=n, wall_s=wall, error=float(np.max(np.abs(zs[-1] - reference)))))
             print(f"{name:36s} n={n:<6d} {wall * 1e3:8.2f} ms  error {rows[-1]['error']:.1e}", flush=True)
     for name, solver in (("diffrax Tsit5", diffrax.Tsit5()), ("diffrax Dopri8", diffrax.Dopri8())):
