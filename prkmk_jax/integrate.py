@@ -8,7 +8,7 @@ from jax.core import Tracer
 from jaxtyping import Array, Float, Int, PyTree, Real
 
 from .bundles import BundleElement
-from .method import RESULTS, AbstractMethod, VectorField, first_failure
+from .method import RESULTS, AbstractMethod, Time, VectorField, first_failure
 from .step import STAGE_SLOPES_NAME
 
 
@@ -80,8 +80,8 @@ def integrate(
     method: AbstractMethod,
     vector_field: VectorField,
     y0: BundleElement,
-    t0: float | Real[Array, ""],
-    dt: float | Real[Array, ""],
+    t0: Time,
+    dt: Time,
     num_steps: int,
     args: PyTree = None,
     *,

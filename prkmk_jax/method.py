@@ -17,7 +17,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, PyTree
+from jaxtyping import Array, Int, PyTree, Real
 
 from .bundles import AbstractBundle, AlgebraPair, BundleElement
 from .coordinates import AbstractCoordinates
@@ -28,7 +28,11 @@ LOW_PRECISION_EPS = 1e-10
 float16) are renormalised after each step (`AbstractMethod.advance`). In
 float64 the drift stays below 1e-7 over 10⁹ steps and the state is left
 exactly as the coordinate map gives it."""
-VectorField = Callable[[Array, BundleElement, PyTree], AlgebraPair]
+Time = float | Real[Array, ""]
+"""A time or a step size: a Python number or a real scalar array."""
+Iterations = Int[Array, ""]
+"""A count of implicit iterations (an integer scalar)."""
+VectorField = Callable[[Time, BundleElement, PyTree], AlgebraPair]
 """`f(t, y, args) -> (ξ, η)`: the generator of y' = (ξ, η)·y (space form) or
 y' = y·(ξ, η) (body form)."""
 
@@ -69,13 +73,13 @@ class AbstractMethod(eqx.Module):
         composition, that its base is symmetric)."""
 
     @abc.abstractmethod
-    def initial_guesses(self, vector_field: VectorField, t: Array, y: BundleElement, args: PyTree = None) -> Any:
+    def initial_guesses(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None) -> Any:
         """What `step_with_guesses` carries, before the first step from (t, y)."""
 
     @abc.abstractmethod
     def step_with_guesses(
-        self, vector_field: VectorField, t: Array, y: BundleElement, dt: Array, args: PyTree, carried: Any
-    ) -> tuple[BundleElement, AlgebraPair, RESULTS, Array, Any]:
+        self, vector_field: VectorField, t: Time, y: BundleElement, dt: Time, args: PyTree, carried: Any
+    ) -> tuple[BundleElement, AlgebraPair, RESULTS, Iterations, Any]:
         """One step from (t, y) to t + dt. Returns (y_next, increment, result,
         iterations, carried for the next step): `increment` is the U with
         `advance(U, y) = y_next`, `iterations` the implicit iterations
@@ -120,12 +124,12 @@ class AbstractMethod(eqx.Module):
             U = tree_scale(-1.0, U)
         return self.coordinates.inverse_differential(self.bundle, U, X, self.order)
 
-    def slope_at(self, vector_field: VectorField, t, U: AlgebraPair, y: BundleElement, args) -> AlgebraPair:
+    def slope_at(self, vector_field: VectorField, t: Time, U: AlgebraPair, y: BundleElement, args: PyTree) -> AlgebraPair:
         """The slope of a stage: df⁻¹_U(X(t, f(U)⊙y)), the field at the point
         the increment U reaches from y, pulled back to the algebra."""
         return self.slope(U, self.generator(vector_field, t, self.apply_increment(U, y), args))
 
-    def generator(self, vector_field: VectorField, t, y: BundleElement, args) -> AlgebraPair:
+    def generator(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree) -> AlgebraPair:
         """(ξ, η) = vector_field(t, y, args) in the state's dtype, whatever
         precision the user's field returns."""
         zeros = self.bundle.algebra_zeros(y)
@@ -147,16 +151,16 @@ class AbstractMethod(eqx.Module):
                 )
 
     def step(
-        self, vector_field: VectorField, t: Array, y: BundleElement, dt: Array, args: PyTree = None
-    ) -> tuple[BundleElement, RESULTS, Array]:
+        self, vector_field: VectorField, t: Time, y: BundleElement, dt: Time, args: PyTree = None
+    ) -> tuple[BundleElement, RESULTS, Iterations]:
         """One step from (t, y) to t + dt, the implicit stages started from the
         field at y. Returns (y_next, result, iterations)."""
         y_next, _, result, iterations = self.step_with_increment(vector_field, t, y, dt, args)
         return y_next, result, iterations
 
     def step_with_increment(
-        self, vector_field: VectorField, t: Array, y: BundleElement, dt: Array, args: PyTree = None
-    ) -> tuple[BundleElement, AlgebraPair, RESULTS, Array]:
+        self, vector_field: VectorField, t: Time, y: BundleElement, dt: Time, args: PyTree = None
+    ) -> tuple[BundleElement, AlgebraPair, RESULTS, Iterations]:
         """As `step`, also returning the increment U of the step
         (y_next = `advance(U, y)`)."""
         carried = self.initial_guesses(vector_field, t, y, args)

@@ -30,11 +30,11 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 from jax.ad_checkpoint import checkpoint_name
-from jaxtyping import Array, PyTree
+from jaxtyping import PyTree
 
 from .bundles import AbstractBundle, AlgebraPair, BundleElement
 from .coordinates import AbstractCoordinates, Exp
-from .method import RESULTS, AbstractMethod, VectorField, first_failure, flag_nonfinite
+from .method import RESULTS, AbstractMethod, Iterations, Time, VectorField, first_failure, flag_nonfinite
 from .stage_plan import COUPLED, Explicit, plan_stages, stage_dependence
 from .tableaus import PartitionedTableau, stormer_verlet
 
@@ -109,7 +109,7 @@ class PRKMK(AbstractMethod):
     def start_field(self, carried):
         return carried[0]
 
-    def initial_guesses(self, vector_field: VectorField, t: Array, y: BundleElement, args: PyTree = None):
+    def initial_guesses(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None):
         """The state `step_with_guesses` carries, before the first step: the
         field X(t₀, y₀), and the same field as every stage slope (so the first
         step starts from the field at y₀, as `step` does)."""
@@ -117,8 +117,8 @@ class PRKMK(AbstractMethod):
         return x, tuple(x for _ in range(self.tableau.num_stages))
 
     def step_with_guesses(
-        self, vector_field: VectorField, t: Array, y: BundleElement, dt: Array, args: PyTree, carried
-    ) -> tuple[BundleElement, AlgebraPair, RESULTS, Array, Any]:
+        self, vector_field: VectorField, t: Time, y: BundleElement, dt: Time, args: PyTree, carried
+    ) -> tuple[BundleElement, AlgebraPair, RESULTS, Iterations, Any]:
         """As `step_with_increment`, with the implicit stages started from the
         previous step's stage slopes, each moved as much as the field at the
         step's start moved over that step: Kᵢ ≈ Kᵢ_prev + X(tₙ, yₙ) − X(tₙ₋₁,
@@ -131,7 +131,7 @@ class PRKMK(AbstractMethod):
         y_next, u_next, result, iterations, stages = self.step_with_stages(vector_field, t, y, dt, args, field_now, guesses)
         return y_next, u_next, result, iterations, (field_now, stages)
 
-    def extrapolated_guesses(self, vector_field: VectorField, t: Array, y: BundleElement, args: PyTree, carried):
+    def extrapolated_guesses(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree, carried):
         """(X(tₙ, yₙ), the stage guesses Kᵢ_prev + X(tₙ, yₙ) − X(tₙ₋₁, yₙ₋₁))
         from what the previous step carried (see `step_with_guesses`)."""
         previous_field, previous_stages = carried
@@ -142,9 +142,9 @@ class PRKMK(AbstractMethod):
     def step_with_stages(
         self,
         vector_field: VectorField,
-        t: Array,
+        t: Time,
         y: BundleElement,
-        dt: Array,
+        dt: Time,
         args: PyTree = None,
         field_at_start: AlgebraPair | None = None,
         stage_guesses: tuple[AlgebraPair, ...] | None = None,
@@ -226,7 +226,7 @@ class PRKMK(AbstractMethod):
         y_next = self.advance(u_next, y)
         return y_next, u_next, flag_nonfinite(result, y_next), iterations, tuple(zip(first, second))
 
-    def stage_plan(self, vector_field: VectorField, t: Array, y: BundleElement, args: PyTree = None):
+    def stage_plan(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None):
         """The order in which this step finds its stage slopes at (t, y)
         (`stage_plan.plan_stages`; trace-time, from the field's program
         when `coupling="traced"`)."""

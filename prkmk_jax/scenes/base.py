@@ -16,6 +16,7 @@ from jaxtyping import Array, Float, PyTree
 from ..bundles import AbstractBundle, AlgebraPair, BundleElement, Cotangent
 from ..coordinates import AbstractCoordinates, Exp
 from ..groups import SO3, SOn
+from ..method import Time
 from ..step import PRKMK
 from ..tableaus import PartitionedTableau
 
@@ -33,7 +34,7 @@ class AbstractScene(eqx.Module):
     """Whether the generator acts from the left (space) or right (body)."""
 
     @abc.abstractmethod
-    def __call__(self, t: Array, y: BundleElement, args: PyTree) -> AlgebraPair:
+    def __call__(self, t: Time, y: BundleElement, args: PyTree) -> AlgebraPair:
         """The generator (ξ, η) at (t, y)."""
 
     @abc.abstractmethod
@@ -46,7 +47,7 @@ class AbstractScene(eqx.Module):
         """The state as a flat vector of the Euclidean embedding."""
 
     @abc.abstractmethod
-    def embedding_field(self, t: Array, z: Float[Array, " d"], args: PyTree, /) -> Float[Array, " d"]:
+    def embedding_field(self, t: Time, z: Float[Array, " d"], args: PyTree, /) -> Float[Array, " d"]:
         """dz/dt on the embedding, for Euclidean solvers (`diffrax.ODETerm`).
         Nothing there keeps the state on the group: that is what such a
         comparison measures."""

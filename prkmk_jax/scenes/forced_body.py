@@ -18,6 +18,7 @@ from jaxtyping import Array, Float, PyTree
 from .. import diagnostics
 from ..bundles import BundleElement
 from ..groups import hat
+from ..method import Time
 from .base import AbstractBodyOnTStarSO3, rotation_matrix
 
 
@@ -29,7 +30,7 @@ class HarmonicTorque(eqx.Module):
     phase: Float[Array, "3"]
 
 
-def harmonic_torque(t: Array, params: HarmonicTorque) -> Float[Array, "3"]:
+def harmonic_torque(t: Time, params: HarmonicTorque) -> Float[Array, "3"]:
     """The default torque law, body frame."""
     return params.amplitude * jnp.sin(params.frequency * t + params.phase)
 
@@ -48,12 +49,12 @@ class ForcedRigidBody(AbstractBodyOnTStarSO3):
     `args` is `ForcedParameters`. `torque_law(t, params)` returns the
     body-frame torque (default `harmonic_torque`)."""
 
-    torque_law: Callable[[Array, PyTree], Float[Array, "3"]] = eqx.field(static=True, default=harmonic_torque)
+    torque_law: Callable[[Time, PyTree], Float[Array, "3"]] = eqx.field(static=True, default=harmonic_torque)
 
     def __call__(self, t, y: BundleElement, args: ForcedParameters):
         return y.fiber / args.inertia, self.torque_law(t, args.torque)
 
-    def power(self, t, y: BundleElement, args: ForcedParameters) -> Array:
+    def power(self, t: Time, y: BundleElement, args: ForcedParameters) -> Array:
         """dH/dt = Ω·τ(t), the rate at which the torque does work."""
         return jnp.sum(y.fiber / args.inertia * self.torque_law(t, args.torque), axis=-1)
 
