@@ -78,6 +78,7 @@ PAGES = {
 }
 
 
+@pytest.mark.end_to_end
 @pytest.mark.parametrize("page", list(PAGES))
 def test_page_examples_run(page):
     code = _python_blocks(DOCS / page)

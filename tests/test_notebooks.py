@@ -37,6 +37,7 @@ def test_committed_with_outputs_question_and_answer(path):
     assert any("image/png" in o.get("data", {}) for c in code for o in c.outputs)
 
 
+@pytest.mark.end_to_end
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
 def test_notebook_runs(path, monkeypatch):
     monkeypatch.setenv("PRKMK_NOTEBOOK_SMALL", "1")

@@ -22,6 +22,7 @@ def test_ci_runs_the_readme_test_command():
     assert test_commands[0] in (ROOT / ".ci" / "run").read_text()
 
 
+@pytest.mark.end_to_end
 def test_readme_example_runs():
     code = "\n".join(re.findall(r"```python\n(.*?)```", README, flags=re.S))
     code += "\nassert traj.ys.fiber.shape == (51, 3)\nassert traj.result == pk.RESULTS.successful\n"
@@ -37,6 +38,7 @@ def test_benchmark_scripts_are_there():
 
 
 # One test per script, so that the workers share them out.
+@pytest.mark.end_to_end
 @pytest.mark.parametrize("script", BENCHMARK_SCRIPTS, ids=lambda s: s.stem)
 def test_benchmark_script_runs_quick(script, tmp_path):
     subprocess.run([sys.executable, str(script), "--quick", "--out", str(tmp_path)], check=True, cwd=ROOT, timeout=300)

@@ -196,6 +196,7 @@ RECORD_FIELDS = {
 }
 
 
+@pytest.mark.end_to_end
 def test_reproduce_command_smoke(tmp_path, capsys):
     # --no-cache: the persistent compilation cache is process-wide JAX state.
     rp.main(["--out", str(tmp_path), "--time-scale", "0.02", "--jobs", "1", "--no-cache"])
