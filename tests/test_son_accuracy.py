@@ -16,8 +16,16 @@ from prkmk_jax.groups.son import SERIES_RADIUS, _dexp_inv_closed_form
 RNG = np.random.default_rng(7)
 
 
-def _random_orthonormal(n, rng=RNG):
-    q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+@pytest.fixture(autouse=True)
+def _same_draws_in_every_order(monkeypatch):
+    """Every test draws its inputs from a fresh generator: which tests ran
+    before it (xdist deals them out differently each run) does not change
+    what it checks."""
+    monkeypatch.setattr(f"{__name__}.RNG", np.random.default_rng(7))
+
+
+def _random_orthonormal(n, rng=None):
+    q, _ = np.linalg.qr((RNG if rng is None else rng).normal(size=(n, n)))
     return q
 
 
