@@ -118,11 +118,11 @@ def main(argv=None):
             energy = pk.diagnostics.energy(pi, pi / inertia)
             codes = np.asarray(pk.diagnostics.run_status(energy, converged, (q, pi)))
             status = [pk.diagnostics.RUN_STATUS[c] for c in codes]
-            failed = np.flatnonzero(codes != 0)
+            first = pk.diagnostics.first_unbounded(codes)
             thresholds[(scene, name)] = dict(
                 threshold=pk.diagnostics.stability_threshold(hw_targets, codes),
-                first_failure=float(hw_targets[failed[0]]) if failed.size else float("nan"),
-                reason=status[failed[0]] if failed.size else "none",
+                first_failure=float("nan") if first is None else float(hw_targets[first]),
+                reason="none" if first is None else status[first],
                 compile_s=compile_s,
             )
             for hw, s, st in zip(hw_targets, scales, status):

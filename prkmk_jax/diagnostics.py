@@ -78,15 +78,22 @@ def run_status(
     return jnp.where(~finite, 3, jnp.where(~jnp.asarray(converged), 2, jnp.where(drift < tolerance, 0, 1)))
 
 
+def first_unbounded(status: Int[Array, " runs"]) -> int | None:
+    """The index of the first run of a sweep that did not stay bounded
+    (status ≠ 0 in `run_status`), or None if every run did."""
+    failed = np.flatnonzero(np.asarray(status) != 0)
+    return int(failed[0]) if failed.size else None
+
+
 def stability_threshold(values: Float[Array, " runs"], status: Int[Array, " runs"]) -> float:
     """The largest of the ascending sweep `values` before the first run that
-    did not stay bounded (status ≠ 0 in `run_status`); 0.0 if the first run
-    fails, the last value if none does."""
-    values_, status_ = np.asarray(values), np.asarray(status)
-    if values_.shape != status_.shape or np.any(np.diff(values_) <= 0):
+    did not stay bounded (`first_unbounded`); 0.0 if the first run fails,
+    the last value if none does."""
+    values_ = np.asarray(values)
+    if values_.shape != np.shape(status) or np.any(np.diff(values_) <= 0):
         raise ValueError("stability_threshold needs ascending values, one status per value.")
-    failed = np.flatnonzero(status_ != 0)
-    first = failed[0] if failed.size else values_.size
+    first = first_unbounded(status)
+    first = values_.size if first is None else first
     return float(values_[first - 1]) if first > 0 else 0.0
 
 

@@ -30,6 +30,8 @@ def test_run_status_sorts_runs_by_how_they_ended():
 
 def test_stability_threshold_is_the_last_value_before_the_first_failure():
     values = jnp.array([0.1, 0.2, 0.4, 0.8, 1.6])
+    assert diagnostics.first_unbounded(np.array([0, 0, 1, 0, 3])) == 2
+    assert diagnostics.first_unbounded(np.zeros(5, int)) is None
     assert diagnostics.stability_threshold(values, np.array([0, 0, 1, 0, 3])) == pytest.approx(0.2)  # bounded again later: ignored
     assert diagnostics.stability_threshold(values, np.zeros(5, int)) == pytest.approx(1.6)
     assert diagnostics.stability_threshold(values, np.array([2, 0, 0, 0, 0])) == 0.0
