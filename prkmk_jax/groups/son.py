@@ -24,11 +24,11 @@ SERIES_RADIUS = 1.75
 
 
 NEAR_IDENTITY = 0.1
+"""‖I − S‖_F below which `SOn.log` uses the power series of g(S)."""
 
 # so(n) as skew-symmetric n×n matrices (and its dual, by the trace pairing),
 # with any leading batch axes.
 Skew = Float[Array, "*batch n n"]
-"""‖I − S‖_F below which `SOn.log` uses the power series of g(S)."""
 
 
 def _log_series_factor(distance):
@@ -75,9 +75,7 @@ def _log(r):
     eye = _eye_like(r)
     distance = eye - sym
     near_identity = jnp.sum(distance**2, axis=(-2, -1)) < NEAR_IDENTITY**2
-    # Where the series is used, the eigendecomposition sees a harmless matrix.
-    harmless = jnp.diag(jnp.linspace(-0.5, 0.5, n, dtype=r.dtype))
-    c, w = jnp.linalg.eigh(jnp.where(near_identity[..., None, None], harmless, sym))
+    c, w = jnp.linalg.eigh(sym)
     c = jnp.clip(c, -1.0, 1.0)
     one_minus = 1.0 - c
     small = one_minus < 1e-6
