@@ -1,7 +1,6 @@
 """The paper's §5 experiments: invariants, the symplecticity diagnostic, and
 the reproduce command."""
 
-import functools
 import json
 import os
 
@@ -21,18 +20,11 @@ RUNS = {r.name: r for r in rp.paper_runs()}
 pytestmark = pytest.mark.xdist_group("section5")
 
 
-@functools.cache
-def _section_5_results():
+@pytest.fixture(scope="module")
+def results():
+    """Execute the §5 runs once (without the compile-heavy step Jacobian)."""
     names = [n for n in RUNS if not n.startswith("sym_so4")]
     return {n: rp.execute(RUNS[n], rb.PAPER_SEED, symplecticity=False) for n in names}
-
-
-@pytest.fixture
-def results():
-    """The §5 runs (without the compile-heavy step Jacobian), executed once
-    per worker: a module-scoped fixture is rebuilt whenever the worker's
-    order leaves this module and comes back."""
-    return _section_5_results()
 
 
 def test_initial_momentum_of_the_symmetric_body():
@@ -198,7 +190,8 @@ RECORD_FIELDS = {
 
 @pytest.mark.end_to_end
 def test_reproduce_command_smoke(tmp_path, capsys):
-    # --no-cache: the persistent compilation cache is process-wide JAX state.
+    # --no-cache: the process keeps the test run's compilation cache
+    # (conftest.py) instead of being pointed at ~/.cache.
     rp.main(["--out", str(tmp_path), "--time-scale", "0.02", "--jobs", "1", "--no-cache"])
     for i in range(1, 5):
         assert (tmp_path / f"fig5_{i}.png").stat().st_size > 10_000
