@@ -127,6 +127,8 @@ def main(argv=None):
             for dtype in (jnp.float64,)
         ]
         cases += [("stormer_verlet", "exp", "integrate", b, jnp.float32) for b in (1, 1024)]
+        large = [(tab, dtype) for tab in ("stormer_verlet", "lobatto_iiia_iiib4") for dtype in (jnp.float64, jnp.float32)]
+        cases += [(tab, "exp", "integrate", 16384, dtype) for tab, dtype in large]
         cases += [("stormer_verlet", "exp", "value_and_grad", b, jnp.float64) for b in (1, 64)]
         rounds, work = args.rounds, 200_000
     print(f"now: working tree; before: {args.rev} ({sha})")

@@ -24,7 +24,10 @@ columns count what each one runs.
 
 Columns: the fused floor, `prkmk_jax.integrate` (lax.scan), diffeqsolve with
 `PRKMKSolver` (ConstantStepSize), and for Störmer–Verlet diffrax Tsit5 with
-the same step on the embedding ℝ⁹×ℝ³. Runs are interleaved (one of each per
+the same step on the embedding ℝ⁹×ℝ³, each vmapped over the trajectories;
+then (batch > 1) `integrate` and diffeqsolve once more with the batch in the
+state, one solve of all trajectories whose stages iterate until every one
+has converged. Runs are interleaved (one of each per
 round); times are medians, ratios are medians of per-round ratios; compile
 time is reported separately.
 
@@ -215,12 +218,20 @@ def compare(method_name, batch, dtype, steps, rounds):
     if method_name == "SV":
         columns["tsit5"] = _tsit5_run(steps)
     batched = {name: jax.vmap(run, in_axes=(0, 0, None)) for name, run in columns.items()}
+    if batch > 1:
+        # The same two library paths with the batch in the state (one solve of
+        # all trajectories, stages iterated until all have converged) rather
+        # than vmapped over single trajectories.
+        batched["integrate_state"] = columns["integrate"]
+        batched["diffeqsolve_state"] = columns["diffeqsolve"]
     compiled, compile_s, outputs = C.compile_all(batched, *args)
     for name, output in outputs.items():
         if output[0].dtype != dtype:
             raise AssertionError(f"{method_name} {name} ran in {output[0].dtype}, not {jnp.dtype(dtype).name}")
     tolerance = 1e-10 if dtype == jnp.float64 else 1e-4
-    for name in ("integrate", "diffeqsolve"):
+    for name in ("integrate", "diffeqsolve", "integrate_state", "diffeqsolve_state"):
+        if name not in outputs:
+            continue
         gap = max(float(jnp.max(jnp.abs(outputs[name][k] - outputs["floor"][k]))) for k in (0, 1))
         if not gap <= tolerance:
             raise AssertionError(f"{method_name} {name} differs from the hand-fused step by {gap:.2e} > {tolerance:.0e}")
@@ -243,6 +254,10 @@ def compare(method_name, batch, dtype, steps, rounds):
     if "tsit5" in times:
         row["integrate_over_tsit5"] = C.median_ratio(times, "integrate", "tsit5")
     row["diffeqsolve_over_integrate"] = C.median_ratio(times, "diffeqsolve", "integrate")
+    if "integrate_state" in times:
+        row["iterations_per_step"]["integrate_state"] = float(outputs["integrate_state"][2]) / steps
+        row["state_over_vmap"] = C.median_ratio(times, "integrate_state", "integrate")
+        row["diffeqsolve_over_integrate_state"] = C.median_ratio(times, "diffeqsolve_state", "integrate_state")
     return row
 
 
@@ -255,6 +270,13 @@ def _print_row(row):
         f"{its['floor']:5.2f} {its['integrate']:5.2f}",
         flush=True,
     )
+    if "integrate_state" in ns:
+        print(
+            f"{'':25s}batch in the state: integrate {ns['integrate_state']:8.0f} diffeqsolve {ns['diffeqsolve_state']:8.0f} "
+            f"int/fl {ratio['integrate_state']:6.2f} dfx/int {row['diffeqsolve_over_integrate_state']:6.2f} "
+            f"state/vmap {row['state_over_vmap']:6.2f} it {its['integrate_state']:5.2f}",
+            flush=True,
+        )
 
 
 def main(argv=None):

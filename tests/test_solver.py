@@ -2,13 +2,14 @@
 on-group dense output and its order, adjoints, batches and errors."""
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import INERTIA, initial_state, reference, rigid_body_field, state_vector
+from helpers import INERTIA, initial_state, max_leaf_difference, reference, rigid_body_field, state_vector
 
 COTANGENT = pk.Cotangent(pk.SO3)
 FIELD = rigid_body_field(COTANGENT, "body")
@@ -150,6 +151,42 @@ def test_vmap_over_initial_conditions():
     out = run(batch)
     for i, y in enumerate(ys):
         np.testing.assert_allclose(out.fiber[i], _solve(method, 0.5, 0.05, y).ys.fiber, atol=1e-14)
+
+
+def test_a_batch_in_the_state_is_one_solve():
+    """A state with a leading batch axis runs as one solve (the faster route
+    for fixed steps through diffeqsolve, see PRKMKSolver), when the field
+    broadcasts over that axis as the free-body scene does: each trajectory
+    agrees with its own solve to the stage tolerance, the stages iterate
+    until every trajectory has converged, and a stage that fails for one
+    trajectory fails the solve, where under vmap only that trajectory fails."""
+    scene = pk.scenes.FreeRigidBody()
+    method = scene.method(pk.stormer_verlet, max_iterations=20)
+    inertia = jnp.asarray(INERTIA)
+    ys = [initial_state(COTANGENT, seed=s) for s in range(4)]
+    batch = jax.tree.map(lambda *a: jnp.stack(a), *ys)
+
+    def solve(y0, **kw):
+        return diffrax.diffeqsolve(pk.PRKMKTerm(scene), pk.PRKMKSolver(method), 0.0, 0.5, 0.05, y0, inertia, **kw)
+
+    def run(y0):
+        return pk.integrate(method, scene, y0, 0.0, 0.05, 10, inertia)
+
+    def batch_first(ys):
+        return jax.tree.map(lambda a: jnp.swapaxes(a, 0, 1), ys)
+
+    together = solve(batch)
+    assert together.ys.fiber.shape == (1, 4, 3)
+    assert max_leaf_difference(together.ys, batch_first(jax.vmap(solve)(batch).ys)) <= 1e-12
+    one, each = run(batch), jax.vmap(run)(batch)
+    assert max_leaf_difference(one.ys, batch_first(each.ys)) <= 1e-12
+    assert int(one.stats["num_iterations"]) >= int(jnp.max(each.stats["num_iterations"]))
+
+    # A spin 2000× faster: h|Ω| ≈ 100, where the fixed-point stage cannot converge.
+    spun = eqx.tree_at(lambda y: y.fiber, batch, batch.fiber.at[3].multiply(2000.0))
+    assert solve(spun, throw=False).result == diffrax.RESULTS.nonlinear_max_steps_reached
+    apart = jax.vmap(lambda y: solve(y, throw=False).result)(spun)
+    assert np.asarray(apart == diffrax.RESULTS.successful).tolist() == [True, True, True, False]
 
 
 def test_errors():
