@@ -103,6 +103,18 @@ class PRKMKSolver(diffrax.AbstractSolver):
 
     The solver state carries the previous step's field at its start and its
     stage slopes: the implicit stages start from them as `integrate` does.
+
+    Batches: `jax.vmap` over `diffeqsolve` keeps each trajectory's own stage
+    iterations and result. diffrax's step loop stops on the result, so under
+    `vmap` its stop condition is per trajectory and it selects its whole
+    state every step. A state with a leading batch axis (where the field
+    broadcasts over it, as the scenes' fields do) runs as one solve instead:
+    its stages iterate until every trajectory has converged, and its result
+    is one value for the batch, so one trajectory's failed stage fails the
+    solve. For fixed steps that route costs about what `integrate` does
+    (`benchmarks/floor.py`). With an optimistix root finder that forms a
+    Jacobian (`root_finder=optx.Newton(...)`), the Jacobian would then span
+    the whole batch: keep `vmap` there.
     """
 
     method: AbstractMethod
