@@ -63,13 +63,13 @@ def _rotation_terms(u, x):
     With it the Störmer–Verlet step on T*SO(3) took 546–557 ns per
     trajectory-step at batch 16384 (float64), with two cross products 337–347
     (`benchmarks/floor.py`'s problem, interleaved). dexp⁻¹ keeps the dot form:
-    Lobatto 4 in float32 at batch 1024 ran 7–10 % slower with two cross
+    Lobatto 4 in float32 at batch 1024 ran 6–10 % slower with two cross
     products there as well.
 
-    The derivative is written in the dot form: the transpose of a cross
-    product is a handful of slices and pads, and with cross products in the
-    derivative as well, `value_and_grad` of Störmer–Verlet for one trajectory
-    took 16.7 µs a step against 13.9 µs with this one.
+    The derivative is that of the dot form (`_cross_twice`): the transpose
+    of a cross product is a handful of slices and pads, and with cross
+    products in the derivative as well, `value_and_grad` of Störmer–Verlet
+    for one trajectory took 16.7 µs a step against 13.9 µs with this one.
     """
     ux = jnp.cross(u, x)
     return ux, jnp.cross(u, ux)
@@ -77,14 +77,9 @@ def _rotation_terms(u, x):
 
 @_rotation_terms.defjvp
 def _rotation_terms_jvp(primals, tangents):
-    u, x = primals
-    du, dx = tangents
-    out = _rotation_terms(u, x)
-    # d(u×x) = du×x + u×dx;  d((u·x)u − θ²x) = (du·x + u·dx)u + (u·x)du − 2(u·du)x − θ²dx.
-    d_ux = jnp.cross(du, x) + jnp.cross(u, dx)
-    along_u = _dot(du, x) + _dot(u, dx)
-    d_uux = along_u[..., None] * u + _dot(u, x)[..., None] * du - (2 * _dot(u, du))[..., None] * x - _theta_sq(u)[..., None] * dx
-    return out, (d_ux, d_uux)
+    # The tangent of the same pair written with the dot form, `_cross_twice`.
+    _, tangent_out = jax.jvp(lambda u, x: (jnp.cross(u, x), _cross_twice(u, x)), primals, tangents)
+    return _rotation_terms(*primals), tangent_out
 
 
 def _eye_plus(alpha, beta, gamma, u):
