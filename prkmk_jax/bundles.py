@@ -49,6 +49,9 @@ Algebra = Float[Array, "..."]
 `algebra_ndim` axes (3-vectors for SO(3), n×n skew matrices for SO(n))."""
 AlgebraPair = tuple[Algebra, Algebra]
 """(u, v) ∈ 𝔤 of a bundle group: the base's part and the fiber's."""
+Increment = tuple[Algebra, Algebra | None]
+"""(u, v) as `exp_multiply` and `cayley_multiply` take it: v None is a zero
+known at trace time, whose arithmetic the product skips."""
 
 
 class BundleElement(eqx.Module):
@@ -64,6 +67,12 @@ class BundleElement(eqx.Module):
 def _multiply_in_form(bundle, increment, y, form):
     """y·increment (body form) or increment·y (space form)."""
     return bundle.multiply(y, increment) if form == "body" else bundle.multiply(increment, y)
+
+
+def _zero_filled(bundle, U: Increment, y) -> AlgebraPair:
+    """U with a fiber component None (zero) replaced by zeros."""
+    u, v = U
+    return (u, bundle.algebra_zeros(y)[1] if v is None else v)
 
 
 def _dual_lift(fn, u, v, x, y):
@@ -189,12 +198,19 @@ class AbstractBundle(eqx.Module):
 
     # --- the update of a PRKMK step ------------------------------------------------
     @abc.abstractmethod
-    def exp_multiply(self, U: AlgebraPair, y: BundleElement, form: Literal["space", "body"]) -> BundleElement:
+    def exp_multiply(self, U: Increment, y: BundleElement, form: Literal["space", "body"]) -> BundleElement:
         """y·exp(U) (`form="body"`) or exp(U)·y (`"space"`), without forming
-        exp(U) where the product only needs its action."""
+        exp(U) where the product only needs its action.
+
+        U = (u, v), and v may be None: a zero known at trace time (a PRKMK
+        stage that no L enters, as for a field with η ≡ 0). The product then
+        skips the fiber part of exp(u, 0), which is zero but would cost its
+        arithmetic: XLA does not fold 0·x for floats. On G ⋉ g that part is
+        dexp_{∓u}(v) (`benchmarks/against_revision.py`: skipping it made the
+        free body's steps on T*SO(3) faster)."""
 
     @abc.abstractmethod
-    def cayley_multiply(self, U: AlgebraPair, y: BundleElement, form: Literal["space", "body"]) -> BundleElement:
+    def cayley_multiply(self, U: Increment, y: BundleElement, form: Literal["space", "body"]) -> BundleElement:
         """y·cay(U) or cay(U)·y, as `exp_multiply`."""
 
 
@@ -232,10 +248,10 @@ class DirectProduct(AbstractBundle):
         return self.quadratic_base.dcayley_inv(U[0], X[0]), X[1]
 
     def exp_multiply(self, U, y, form):
-        return _multiply_in_form(self, self.exp(U), y, form)
+        return _multiply_in_form(self, self.exp(_zero_filled(self, U, y)), y, form)
 
     def cayley_multiply(self, U, y, form):
-        return _multiply_in_form(self, self.cayley(U), y, form)
+        return _multiply_in_form(self, self.cayley(_zero_filled(self, U, y)), y, form)
 
 
 class Cartesian(AbstractBundle):
@@ -272,10 +288,10 @@ class Cartesian(AbstractBundle):
         return self.quadratic_base.dcayley_inv(U[0], X[0]), self.quadratic_base.dcayley_inv(U[1], X[1])
 
     def exp_multiply(self, U, y, form):
-        return _multiply_in_form(self, self.exp(U), y, form)
+        return _multiply_in_form(self, self.exp(_zero_filled(self, U, y)), y, form)
 
     def cayley_multiply(self, U, y, form):
-        return _multiply_in_form(self, self.cayley(U), y, form)
+        return _multiply_in_form(self, self.cayley(_zero_filled(self, U, y)), y, form)
 
 
 class AbstractSemidirect(AbstractBundle):
@@ -355,13 +371,13 @@ class AbstractSemidirect(AbstractBundle):
     def exp_multiply(self, U, y, form):
         u, v = U
         base = self.base
-        fiber_part = base.dexp(self._sign() * u, v)
+        fiber_part = None if v is None else base.dexp(self._sign() * u, v)
         return self._multiply_increment(y, base.exp(u), fiber_part, lambda x, sign: base.exp_adjoint(sign * u, x), form)
 
     def cayley_multiply(self, U, y, form):
         u, v = U
         base = self.quadratic_base
-        fiber_part = self._cayley_fiber(u, v)
+        fiber_part = None if v is None else self._cayley_fiber(u, v)
         return self._multiply_increment(y, base.cayley(u), fiber_part, lambda x, sign: base.cayley_adjoint(sign * u, x), form)
 
     def _multiply_increment(self, y, g, w, act, form):
@@ -370,10 +386,16 @@ class AbstractSemidirect(AbstractBundle):
         (g itself only enters the base, which XLA drops when unused)."""
         left = self.trivialization == "left"
         if form == "body":  # y·(g, w)
-            fiber = act(y.fiber, -1.0) + w if left else y.fiber + y.base.adjoint(w)
+            if w is None:
+                fiber = act(y.fiber, -1.0) if left else y.fiber
+            else:
+                fiber = act(y.fiber, -1.0) + w if left else y.fiber + y.base.adjoint(w)
             return BundleElement(y.base.multiply(g), fiber)
         # (g, w)·y
-        fiber = y.base.inverse().adjoint(w) + y.fiber if left else w + act(y.fiber, 1.0)
+        if w is None:
+            fiber = y.fiber if left else act(y.fiber, 1.0)
+        else:
+            fiber = y.base.inverse().adjoint(w) + y.fiber if left else w + act(y.fiber, 1.0)
         return BundleElement(g.multiply(y.base), fiber)
 
 

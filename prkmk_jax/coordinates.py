@@ -10,7 +10,7 @@ from typing import Literal
 
 import equinox as eqx
 
-from .bundles import AbstractBundle, AlgebraPair, BundleElement
+from .bundles import AbstractBundle, AlgebraPair, BundleElement, Increment
 from .series import default_truncation, dexp_inv_series
 
 Truncation = int | None | Literal["auto"]
@@ -41,8 +41,9 @@ class AbstractCoordinates(eqx.Module):
         """f⁻¹(g): the U near 0 with f(U) = g."""
 
     @abc.abstractmethod
-    def apply(self, bundle: AbstractBundle, U: AlgebraPair, y: BundleElement, form: Literal["space", "body"]) -> BundleElement:
-        """y·f(U) (`form="body"`) or f(U)·y (`"space"`)."""
+    def apply(self, bundle: AbstractBundle, U: Increment, y: BundleElement, form: Literal["space", "body"]) -> BundleElement:
+        """y·f(U) (`form="body"`) or f(U)·y (`"space"`); U's fiber component
+        may be None, a zero known at trace time."""
 
     @abc.abstractmethod
     def inverse_differential(self, bundle: AbstractBundle, U: AlgebraPair, X: AlgebraPair, method_order: int) -> AlgebraPair:

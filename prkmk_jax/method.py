@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Int, PyTree, Real
 
-from .bundles import AbstractBundle, AlgebraPair, BundleElement
+from .bundles import AbstractBundle, AlgebraPair, BundleElement, Increment
 from .coordinates import AbstractCoordinates
 
 RESULTS = diffrax.RESULTS
@@ -91,11 +91,13 @@ class AbstractMethod(eqx.Module):
         `carried` (it is part of what a step carries)."""
 
     # --- shared by every method -----------------------------------------------------
-    def apply_increment(self, U: AlgebraPair, y: BundleElement) -> BundleElement:
-        """f(U)·y (space form) or y·f(U) (body form), f the coordinate map."""
+    def apply_increment(self, U: Increment, y: BundleElement) -> BundleElement:
+        """f(U)·y (space form) or y·f(U) (body form), f the coordinate map.
+        U's fiber component may be None, a zero known at trace time
+        (`AbstractBundle.exp_multiply`)."""
         return self.coordinates.apply(self.bundle, U, y, self.form)
 
-    def advance(self, U: AlgebraPair, y: BundleElement) -> BundleElement:
+    def advance(self, U: Increment, y: BundleElement) -> BundleElement:
         """The step's new state: `apply_increment(U, y)`, and in low precision
         (machine epsilon above `LOW_PRECISION_EPS`) corrected back onto the
         group (`AbstractBundle.renormalized`): there the rounding of f(U) and
@@ -124,10 +126,14 @@ class AbstractMethod(eqx.Module):
             U = tree_scale(-1.0, U)
         return self.coordinates.inverse_differential(self.bundle, U, X, self.order)
 
-    def slope_at(self, vector_field: VectorField, t: Time, U: AlgebraPair, y: BundleElement, args: PyTree) -> AlgebraPair:
+    def slope_at(self, vector_field: VectorField, t: Time, U: Increment, y: BundleElement, args: PyTree) -> AlgebraPair:
         """The slope of a stage: df⁻¹_U(X(t, f(U)⊙y)), the field at the point
-        the increment U reaches from y, pulled back to the algebra."""
-        return self.slope(U, self.generator(vector_field, t, self.apply_increment(U, y), args))
+        the increment U reaches from y, pulled back to the algebra. U's fiber
+        component may be None, a zero known at trace time."""
+        point = self.apply_increment(U, y)
+        u, v = U
+        filled = (u, self.bundle.algebra_zeros(y)[1] if v is None else v)
+        return self.slope(filled, self.generator(vector_field, t, point, args))
 
     def generator(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree) -> AlgebraPair:
         """(ξ, η) = vector_field(t, y, args) in the state's dtype, whatever

@@ -184,8 +184,9 @@ class PRKMK(AbstractMethod):
             tt = t + float(tab.c_first[i]) * dt
             if u is None and v is None:  # U_i = 0: Y_i = yₙ and df⁻¹_0 = I
                 return field_at_yn() if tab.c_first[i] == 0 else field(tt, y)
-            U = (zeros[0] if u is None else u, zeros[1] if v is None else v)
-            return self.slope_at(vector_field, tt, U, y, args)
+            # v None (no L enters this stage: L ≡ 0, or a zero row of A²) stays
+            # None: the stage point then skips the fiber part of f(U).
+            return self.slope_at(vector_field, tt, (zeros[0] if u is None else u, v), y, args)
 
         slopes: list[list] = [[None] * tab.num_stages, [None] * tab.num_stages]
         result = RESULTS.successful
@@ -222,9 +223,10 @@ class PRKMK(AbstractMethod):
 
         u_next = static_combination(dt, tab.b_first, slopes[0], zeros[0])
         v_next = static_combination(dt, tab.b_second, slopes[1], zeros[1])
-        u_next = (zeros[0] if u_next is None else u_next, zeros[1] if v_next is None else v_next)
-        y_next = self.advance(u_next, y)
-        return y_next, u_next, flag_nonfinite(result, y_next), iterations, tuple(zip(first, second))
+        u_next = zeros[0] if u_next is None else u_next
+        y_next = self.advance((u_next, v_next), y)
+        increment = (u_next, zeros[1] if v_next is None else v_next)
+        return y_next, increment, flag_nonfinite(result, y_next), iterations, tuple(zip(first, second))
 
     def stage_plan(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None):
         """The order in which this step finds its stage slopes at (t, y)

@@ -275,3 +275,8 @@ def test_apply_increment_equals_the_group_product(name, form, coordinates):
     increment = coords.map(bundle, U)
     expected = bundle.multiply(y, increment) if form == "body" else bundle.multiply(increment, y)
     _close(coords.apply(bundle, U, y, form), expected, tol=1e-11)
+    # A fiber component None is a zero known at trace time (what a PRKMK
+    # stage passes when no L enters it): the product with f(u, 0).
+    increment = coords.map(bundle, (U[0], jnp.zeros_like(U[1])))
+    expected = bundle.multiply(y, increment) if form == "body" else bundle.multiply(increment, y)
+    _close(coords.apply(bundle, (U[0], None), y, form), expected, tol=1e-11)
