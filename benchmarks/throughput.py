@@ -5,7 +5,9 @@
    (`prkmk_jax.integrate`) and through `diffeqsolve`, in float64 and
    float32, and diffrax Tsit5 with constant steps on the embedding ℝ⁹×ℝ³.
    The step count per run shrinks with the batch so every run does a
-   similar amount of work; also reported: implicit iterations per step.
+   similar amount of work; the four run in alternation (7 rounds; medians,
+   and the median per-round ratio to Tsit5); also reported: implicit
+   iterations per step.
 2. Compile time (lower + compile of a fresh jit) against the number of
    stages: symplectic Euler (1), Störmer–Verlet (2), Lobatto IIIA–IIIB (3).
 3. Forward against forward + backward: `jax.grad` of a loss of the final
@@ -20,6 +22,7 @@
 
 import json
 import statistics
+import time
 
 import diffrax
 import jax
@@ -78,31 +81,36 @@ def _tsit5(steps):
     return run
 
 
-def throughput(quick, repeats):
+def throughput(quick, rounds):
     batches = [8] if quick else [1, 64, 1024, 16384, 65536]
     method64 = C.SCENE.method(pk.stormer_verlet)
     rows = []
     for batch in batches:
         steps = 10 if quick else int(min(400, max(10, 2_000_000 // (batch * 10))))
         qs, pis = C.initial_conditions(batch, seed=3)
-        for name, dtype, make in (
-            ("PRKMK SV scan", jnp.float64, lambda: _scan(method64, steps)),
-            ("PRKMK SV scan float32", jnp.float32, lambda: _scan(method64, steps)),
-            (
-                "PRKMK SV diffeqsolve",
-                jnp.float64,
-                lambda: _diffeqsolve(method64, steps),
-            ),
-            ("diffrax Tsit5 (embedding)", jnp.float64, lambda: _tsit5(steps)),
-        ):
-            args = (
-                jnp.asarray(qs, dtype),
-                jnp.asarray(pis, dtype),
-                jnp.asarray(C.INERTIA, dtype),
-            )
-            compiled, compile_s = C.compile_fn(jax.vmap(make(), in_axes=(0, 0, None)), *args)
-            wall, (_, iters) = C.median_time(compiled, *args, repeats=repeats)
+        columns = {
+            "PRKMK SV scan": (jnp.float64, _scan(method64, steps)),
+            "PRKMK SV scan float32": (jnp.float32, _scan(method64, steps)),
+            "PRKMK SV diffeqsolve": (jnp.float64, _diffeqsolve(method64, steps)),
+            "diffrax Tsit5 (embedding)": (jnp.float64, _tsit5(steps)),
+        }
+        compiled, compile_s, iterations, args_of = {}, {}, {}, {}
+        for name, (dtype, run) in columns.items():
+            args_of[name] = (jnp.asarray(qs, dtype), jnp.asarray(pis, dtype), jnp.asarray(C.INERTIA, dtype))
+            compiled[name], compile_s[name] = C.compile_fn(jax.vmap(run, in_axes=(0, 0, None)), *args_of[name])
+            iterations[name] = jax.block_until_ready(compiled[name](*args_of[name]))[1]
+        # The four columns run in alternation, one of each per round, so that
+        # a slow spell of the machine (or of this process) hits all of them.
+        times = {name: [] for name in columns}
+        for _ in range(rounds):
+            for name, fn in compiled.items():
+                start = time.perf_counter()
+                jax.block_until_ready(fn(*args_of[name]))
+                times[name].append(time.perf_counter() - start)
+        for name in columns:
+            wall = statistics.median(times[name])
             rate = batch * steps / wall
+            iters = iterations[name]
             iters_per_step = float(jnp.mean(iters)) / steps if jnp.all(jnp.isfinite(iters)) else float("nan")
             rows.append(
                 dict(
@@ -110,14 +118,16 @@ def throughput(quick, repeats):
                     method=name,
                     steps=steps,
                     wall_s=wall,
-                    compile_s=compile_s,
+                    compile_s=compile_s[name],
                     traj_steps_per_s=rate,
                     iterations_per_step=iters_per_step,
+                    over_tsit5=C.median_ratio(times, name, "diffrax Tsit5 (embedding)"),
                 )
             )
             print(
                 f"batch {batch:6d} {name:28s} steps={steps:4d} wall={wall:8.4f}s  {rate:10.3e} "
-                f"traj-steps/s  compile {compile_s:5.2f}s  iterations/step {iters_per_step:.1f}",
+                f"traj-steps/s  time / Tsit5 {rows[-1]['over_tsit5']:5.2f}  compile {compile_s[name]:5.2f}s  "
+                f"iterations/step {iters_per_step:.1f}",
                 flush=True,
             )
     return rows
@@ -196,11 +206,11 @@ def main(argv=None):
         argv,
         lambda p: p.add_argument("--parts", default="throughput,compile,gradient"),
     )
-    repeats = 1 if args.quick else 3
+    rounds = 1 if args.quick else 7
     result = dict(machine=C.machine())
     parts = args.parts.split(",")
     if "throughput" in parts:
-        result["throughput"] = throughput(args.quick, repeats)
+        result["throughput"] = throughput(args.quick, rounds)
     if "compile" in parts:
         result["compile_vs_stages"] = compile_vs_stages(args.quick)
     if "gradient" in parts:
