@@ -20,9 +20,9 @@
     python benchmarks/throughput.py --quick
 """
 
+import functools
 import json
 import statistics
-import time
 
 import diffrax
 import jax
@@ -100,13 +100,10 @@ def throughput(quick, rounds):
             compiled[name], compile_s[name] = C.compile_fn(jax.vmap(run, in_axes=(0, 0, None)), *args_of[name])
             iterations[name] = jax.block_until_ready(compiled[name](*args_of[name]))[1]
         # The four columns run in alternation, one of each per round, so that
-        # a slow spell of the machine (or of this process) hits all of them.
-        times = {name: [] for name in columns}
-        for _ in range(rounds):
-            for name, fn in compiled.items():
-                start = time.perf_counter()
-                jax.block_until_ready(fn(*args_of[name]))
-                times[name].append(time.perf_counter() - start)
+        # a slow spell of the machine (or of this process) hits all of them;
+        # each is bound to its own arguments (the float32 column has its own).
+        bound = {name: functools.partial(fn, *args_of[name]) for name, fn in compiled.items()}
+        times = C.interleaved_times(bound, rounds=rounds)
         for name in columns:
             wall = statistics.median(times[name])
             rate = batch * steps / wall

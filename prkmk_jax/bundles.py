@@ -69,12 +69,6 @@ def _multiply_in_form(bundle, increment, y, form):
     return bundle.multiply(y, increment) if form == "body" else bundle.multiply(increment, y)
 
 
-def _zero_filled(bundle, U: Increment, y) -> AlgebraPair:
-    """U with a fiber component None (zero) replaced by zeros."""
-    u, v = U
-    return (u, bundle.algebra_zeros(y)[1] if v is None else v)
-
-
 def _dual_lift(fn, u, v, x, y):
     """ε-expansion of Φ(u + εv, x + εy) for Φ = fn (see module docstring)."""
     first = fn(u, x)
@@ -154,6 +148,12 @@ class AbstractBundle(eqx.Module):
     def algebra_zeros(self, y: BundleElement) -> AlgebraPair:
         z = y.base.algebra_zeros()
         return z, jnp.zeros_like(z)
+
+    def zero_filled(self, U: Increment, y: BundleElement) -> AlgebraPair:
+        """U with a fiber component None (a zero known at trace time, see
+        `exp_multiply`) replaced by the zeros of the algebra at y."""
+        u, v = U
+        return u, self.algebra_zeros(y)[1] if v is None else v
 
     def identity_like(self, y: BundleElement) -> BundleElement:
         fiber = y.fiber.identity_like() if self.fiber_is_group else jnp.zeros_like(y.fiber)
@@ -249,10 +249,10 @@ class DirectProduct(AbstractBundle):
         return self.quadratic_base.dcayley_inv(U[0], X[0]), X[1]
 
     def exp_multiply(self, U, y, form):
-        return _multiply_in_form(self, self.exp(_zero_filled(self, U, y)), y, form)
+        return _multiply_in_form(self, self.exp(self.zero_filled(U, y)), y, form)
 
     def cayley_multiply(self, U, y, form):
-        return _multiply_in_form(self, self.cayley(_zero_filled(self, U, y)), y, form)
+        return _multiply_in_form(self, self.cayley(self.zero_filled(U, y)), y, form)
 
 
 class Cartesian(AbstractBundle):
@@ -289,10 +289,10 @@ class Cartesian(AbstractBundle):
         return self.quadratic_base.dcayley_inv(U[0], X[0]), self.quadratic_base.dcayley_inv(U[1], X[1])
 
     def exp_multiply(self, U, y, form):
-        return _multiply_in_form(self, self.exp(_zero_filled(self, U, y)), y, form)
+        return _multiply_in_form(self, self.exp(self.zero_filled(U, y)), y, form)
 
     def cayley_multiply(self, U, y, form):
-        return _multiply_in_form(self, self.cayley(_zero_filled(self, U, y)), y, form)
+        return _multiply_in_form(self, self.cayley(self.zero_filled(U, y)), y, form)
 
 
 class AbstractSemidirect(AbstractBundle):
@@ -387,16 +387,14 @@ class AbstractSemidirect(AbstractBundle):
         (g itself only enters the base, which XLA drops when unused)."""
         left = self.trivialization == "left"
         if form == "body":  # y·(g, w)
-            if w is None:
-                fiber = act(y.fiber, -1.0) if left else y.fiber
-            else:
-                fiber = act(y.fiber, -1.0) + w if left else y.fiber + y.base.adjoint(w)
+            fiber = act(y.fiber, -1.0) if left else y.fiber
+            if w is not None:  # None: w = 0 (`exp_multiply`)
+                fiber = fiber + (w if left else y.base.adjoint(w))
             return BundleElement(y.base.multiply(g), fiber)
         # (g, w)·y
-        if w is None:
-            fiber = y.fiber if left else act(y.fiber, 1.0)
-        else:
-            fiber = y.base.inverse().adjoint(w) + y.fiber if left else w + act(y.fiber, 1.0)
+        fiber = y.fiber if left else act(y.fiber, 1.0)
+        if w is not None:
+            fiber = fiber + (y.base.inverse().adjoint(w) if left else w)
         return BundleElement(g.multiply(y.base), fiber)
 
 

@@ -131,9 +131,7 @@ class AbstractMethod(eqx.Module):
         the increment U reaches from y, pulled back to the algebra. U's fiber
         component may be None, a zero known at trace time."""
         point = self.apply_increment(U, y)
-        u, v = U
-        filled = (u, self.bundle.algebra_zeros(y)[1] if v is None else v)
-        return self.slope(filled, self.generator(vector_field, t, point, args))
+        return self.slope(self.bundle.zero_filled(U, y), self.generator(vector_field, t, point, args))
 
     def generator(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree) -> AlgebraPair:
         """(ξ, η) = vector_field(t, y, args) in the state's dtype, whatever
