@@ -116,12 +116,14 @@ def method_of(run: Run) -> PRKMK:
 
 DEFAULT_CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "prkmk_jax" / "xla"
 """Where compiled programs are kept between invocations (JAX's persistent
-compilation cache): a second run, or one with another `--time-scale` of
-the same shapes, skips most of the compilation."""
+compilation cache). JAX keeps only programs without host callbacks: the
+step-map Jacobians of the symplecticity check and the diagnostics' small
+programs. The integrations are compiled again each time: their run-time
+checks (`eqx.error_if`) are host callbacks."""
 
 
 def use_compilation_cache(cache_dir: Path | None) -> None:
-    """Keep every compiled program in `cache_dir` (None: no cache)."""
+    """Keep the compiled programs JAX can store (see `DEFAULT_CACHE`) in `cache_dir` (None: no cache)."""
     if cache_dir is None:
         return
     jax.config.update("jax_compilation_cache_dir", str(cache_dir))

@@ -8,11 +8,14 @@ from hypothesis import HealthCheck, settings
 
 # One persistent compilation cache for the whole test run: the xdist workers,
 # the notebook kernels and the benchmark scripts the tests start inherit it
-# through the environment, so a program compiled by one of them (the §5 runs,
-# the same scene's step at the same shapes) is loaded, not compiled, by the
-# others. A cached program is the compiled one, bit for bit. The controller
-# creates the directory before it starts the workers; a fresh one per run,
-# so nothing carries over between runs.
+# through the environment, so a program compiled by one of them is loaded,
+# not compiled, by the others. JAX stores only programs without host
+# callbacks: the small programs of eager operations, not the integrations,
+# whose run-time checks (`eqx.error_if`) are callbacks. In a run of
+# `pytest -m "not end_to_end"`, 1100 of 3349 programs came from it. A
+# cached program is the compiled one, bit for bit. The controller creates
+# the directory before it starts the workers; a fresh one per run, so
+# nothing carries over between runs.
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="prkmk-tests-xla-")
     atexit.register(shutil.rmtree, os.environ["JAX_COMPILATION_CACHE_DIR"], ignore_errors=True)

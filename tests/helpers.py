@@ -127,6 +127,23 @@ def final_state_fn(method: pk.PRKMK, form_field_key):
     return run
 
 
+def final_state_by_steps(method: pk.AbstractMethod, field, y0, args=None):
+    """A jitted (dt, n) -> (y after n steps of `method.step` from (0, y0),
+    whether every step's implicit stages converged). dt and n are traced:
+    one compiled program serves every step size of a convergence test."""
+
+    @jax.jit
+    def run(dt, n):
+        def one_step(i, carry):
+            y, converged = carry
+            y, result, _ = method.step(field, i * dt, y, dt, args)
+            return y, converged & (result == pk.RESULTS.successful)
+
+        return jax.lax.fori_loop(0, n, one_step, (y0, jnp.array(True)))
+
+    return run
+
+
 def empirical_order(method: pk.PRKMK, t_end=2.0, steps=(10, 20, 40, 80), seed=0, inertia=INERTIA):
     """Log–log slope of the final-time error vs h against the DOP853 reference."""
     bundle = method.bundle

@@ -192,8 +192,9 @@ RECORD_FIELDS = {
 def test_reproduce_command(tmp_path, capsys):
     # The README's job as it is, at the paper's time scale. --no-cache: the
     # process keeps the test run's compilation cache (conftest.py) instead of
-    # being pointed at ~/.cache, so the runs the module's fixture executed
-    # (the same programs) are loaded from it, not compiled again.
+    # writing to ~/.cache. The integrations the module's fixture ran are
+    # compiled again: JAX does not cache programs with host callbacks, and
+    # their run-time checks (`eqx.error_if`) are callbacks.
     rp.main(["--out", str(tmp_path), "--jobs", "1", "--no-cache"])
     for i in range(1, 5):
         assert (tmp_path / f"fig5_{i}.png").stat().st_size > 10_000
