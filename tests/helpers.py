@@ -111,29 +111,14 @@ def scene_reference(scene, y0, t_end, args, t_eval=None) -> np.ndarray:
     return sol.y.T
 
 
-@functools.cache
-def final_state_fn(method: pk.PRKMK, form_field_key):
-    """A jitted (y0, dt, n, args) -> y_n with a dynamic step count (one compile per method)."""
-    bundle, form = form_field_key
-    field = rigid_body_field(bundle, form)
+def final_state_by_steps(method: pk.AbstractMethod, field):
+    """A jitted (y0, dt, n, args) -> (y after n steps of `method.step` from
+    (0, y0), whether every step's implicit stages converged). dt and n are
+    traced: one compiled program serves every step size of a convergence
+    test."""
 
     @jax.jit
     def run(y0, dt, n, args):
-        def body(i, y):
-            return method.step(field, i * dt, y, dt, args)[0]
-
-        return jax.lax.fori_loop(0, n, body, y0)
-
-    return run
-
-
-def final_state_by_steps(method: pk.AbstractMethod, field, y0, args=None):
-    """A jitted (dt, n) -> (y after n steps of `method.step` from (0, y0),
-    whether every step's implicit stages converged). dt and n are traced:
-    one compiled program serves every step size of a convergence test."""
-
-    @jax.jit
-    def run(dt, n):
         def one_step(i, carry):
             y, converged = carry
             y, result, _ = method.step(field, i * dt, y, dt, args)
@@ -144,6 +129,14 @@ def final_state_by_steps(method: pk.AbstractMethod, field, y0, args=None):
     return run
 
 
+@functools.cache
+def final_state_fn(method: pk.PRKMK, form_field_key):
+    """`final_state_by_steps` on the rigid body's field in a form, one per
+    (method, (bundle, form)) for the whole test run."""
+    bundle, form = form_field_key
+    return final_state_by_steps(method, rigid_body_field(bundle, form))
+
+
 def empirical_order(method: pk.PRKMK, t_end=2.0, steps=(10, 20, 40, 80), seed=0, inertia=INERTIA):
     """Log–log slope of the final-time error vs h against the DOP853 reference."""
     bundle = method.bundle
@@ -152,7 +145,8 @@ def empirical_order(method: pk.PRKMK, t_end=2.0, steps=(10, 20, 40, 80), seed=0,
     run = final_state_fn(method, (bundle, method.form))
     errs = []
     for n in steps:
-        yn = run(y0, jnp.asarray(t_end / n), n, jnp.asarray(inertia))
+        yn, converged = run(y0, jnp.asarray(t_end / n), n, jnp.asarray(inertia))
+        assert converged
         errs.append(np.max(np.abs(state_vector(bundle, yn) - ref)))
     hs = t_end / np.asarray(steps)
     slope = np.polyfit(np.log(hs), np.log(errs), 1)[0]

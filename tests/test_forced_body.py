@@ -61,9 +61,9 @@ def test_energy_balance_and_state_at_the_method_order(tableau, order):
     steps = np.array([30, 60, 120, 240])
     state_errors, balance_errors = [], []
     h0 = _energy(np.asarray(BODY.to_embedding(Y0)))
-    final_state = final_state_by_steps(method, BODY, Y0, ARGS)
+    final_state = final_state_by_steps(method, BODY)
     for n in steps:
-        y, converged = final_state(T_END / n, n)
+        y, converged = final_state(Y0, T_END / n, n, ARGS)
         assert converged
         z = np.asarray(BODY.to_embedding(y))
         state_errors.append(np.max(np.abs(z - REFERENCE[:12])))

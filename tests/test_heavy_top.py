@@ -69,10 +69,10 @@ def test_empirical_order(name):
     scene, method, order = ORDERS[name]
     t_end, steps = 2.0, np.array([20, 40, 80, 160])
     reference = _reference(t_end, ASYMMETRIC)[-1]
-    final_state = final_state_by_steps(method, scene, Y0, ASYMMETRIC)
+    final_state = final_state_by_steps(method, scene)
     errors = []
     for n in steps:
-        y, converged = final_state(t_end / n, n)
+        y, converged = final_state(Y0, t_end / n, n, ASYMMETRIC)
         assert converged
         errors.append(np.max(np.abs(np.asarray(scene.to_embedding(y)) - reference)))
     slope = np.polyfit(np.log(t_end / steps), np.log(errors), 1)[0]

@@ -195,10 +195,10 @@ def test_explicit_verlet_keeps_its_order_and_the_spin_to_round_off():
         np.testing.assert_allclose(values, values[0], atol=1e-10, err_msg=name)
     method = scene.method(pk.stormer_verlet)
     steps = np.array([20, 40, 80, 160])
-    final_state = final_state_by_steps(method, scene, y0, args)
+    final_state = final_state_by_steps(method, scene)
     errors = []
     for n in steps:
-        y, converged = final_state(t_end / n, n)
+        y, converged = final_state(y0, t_end / n, n, args)
         assert converged
         errors.append(np.max(np.abs(np.asarray(scene.to_embedding(y)) - reference)))
     slope = np.polyfit(np.log(t_end / steps), np.log(errors), 1)[0]
