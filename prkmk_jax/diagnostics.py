@@ -97,21 +97,22 @@ def stability_threshold(values: Float[Array, " runs"], status: Int[Array, " runs
     return float(values_[first - 1]) if first > 0 else 0.0
 
 
-def _dexp_left_matrix(a):
-    """Matrix of v ↦ dexp_{−a}(v) = g⁻¹ d/dt g for g = g₀ exp(a)."""
-    return jax.jacfwd(lambda v: SO3.dexp(-a, v))(jnp.zeros_like(a))
-
-
 def to_canonical(g0: Float[Array, "3 3"], g: Float[Array, "3 3"], pi: Float[Array, "3"]) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
-    """Canonical coordinates (q, p) on T*SO(3) near g₀: g = g₀ exp(q) and
-    p = dexp_{−q}ᵀ Π, the momentum conjugate to q (⟨Π, g⁻¹ġ⟩ = ⟨p, q̇⟩)."""
+    """Canonical coordinates (q, p) on T*SO(3) near g₀: g = g₀ exp(q) and p
+    the momentum conjugate to q, ⟨Π, g⁻¹ġ⟩ = ⟨p, q̇⟩.
+
+    g⁻¹ġ = dexp_{−q} q̇, so p = dexp_{−q}ᵀ Π. In so(3) ≅ ℝ³ the matrix of
+    dexp_u is I + b û + c û² with b, c even in |u|, and ûᵀ = −û, so
+    dexp_{−q}ᵀ = dexp_q: p = dexp_q Π, in closed form (`SO3.dexp`).
+    """
     q = SO3(g0.T @ g).log()
-    return q, _dexp_left_matrix(q).T @ pi
+    return q, SO3.dexp(q, pi)
 
 
 def from_canonical(g0: Float[Array, "3 3"], q: Float[Array, "3"], p: Float[Array, "3"]) -> tuple[Float[Array, "3 3"], Float[Array, "3"]]:
-    """Inverse of `to_canonical`."""
-    return g0 @ SO3.exp(q).matrix, jnp.linalg.solve(_dexp_left_matrix(q).T, p)
+    """Inverse of `to_canonical`: g = g₀ exp(q), Π = dexp_q⁻¹ p (`SO3.dexp_inv`,
+    closed form; |q| ≤ π from the logarithm)."""
+    return g0 @ SO3.exp(q).matrix, SO3.dexp_inv(q, p)
 
 
 def symplecticity_defect(step_map: Callable, g0: Float[Array, "3 3"], pi0: Float[Array, "3"]) -> Array:

@@ -160,6 +160,21 @@ def test_canonical_chart_round_trip():
     np.testing.assert_allclose(pi1, pi, atol=1e-14)
 
 
+@pytest.mark.parametrize("angle", [0.0, 1e-5, 0.3, 2.0, 3.1])
+def test_canonical_momentum_pairs_with_the_velocity(angle):
+    """p is conjugate to q: ⟨Π, g⁻¹ġ⟩ = ⟨p, q̇⟩ for g = g₀ exp(q(t)), with
+    g⁻¹ġ from `jax.jvp` of the exponential (not from the closed form of
+    `to_canonical`), at angles up to near π."""
+    g0 = jnp.asarray(rb.random_rotation(5))
+    q = angle * jnp.array([0.48, -0.6, 0.64])
+    pi = jnp.array([0.3, 0.1, -0.7])
+    q_dot = jnp.array([-0.2, 0.5, 0.9])
+    g, g_dot = jax.jvp(lambda q: g0 @ pk.SO3.exp(q).matrix, (q,), (q_dot,))
+    q_back, p = diagnostics.to_canonical(g0, g, pi)
+    np.testing.assert_allclose(q_back, q, atol=1e-12)
+    np.testing.assert_allclose(jnp.dot(p, q_dot), jnp.dot(pi, pk.vee(g.T @ g_dot)), rtol=1e-13, atol=1e-15)
+
+
 # --- the command -------------------------------------------------------------------
 RECORD_FIELDS = {
     "run",
