@@ -133,27 +133,21 @@ def use_compilation_cache(cache_dir: Path | None) -> None:
 
 
 @functools.partial(jax.jit, static_argnums=0)
-def _trajectory_diagnostics(bundle: AbstractBundle, ys, inertia) -> tuple[dict, dict]:
-    """The invariants along a saved trajectory (energy, |Π|, spatial
-    momentum) and their worst drifts and orthogonality defect, as one
-    compiled program per trajectory length and bundle. Computed op by op,
-    each operation is a program of its own, ~20 compiled for every new
-    trajectory length (0.3–0.5 s of a run)."""
-    g, pi = rb.attitude_and_momentum(bundle, ys)
-    matrix = pi.shape == g.shape  # Π a skew matrix (n ≠ 3) or a 3-vector
-    omega = rb.angular_velocity(pi, inertia)
+def _trajectory_diagnostics(scene: AbstractScene, ys, inertia) -> tuple[dict, dict]:
+    """The scene's invariants along a saved trajectory and their worst
+    drifts, as one compiled program per trajectory length and scene.
+    Computed op by op, each operation is a program of its own, ~20 compiled
+    for every new trajectory length (0.3–0.5 s of a run)."""
+    invariants = scene.invariants(ys, inertia)
     curves = {
-        "energy": diagnostics.energy(pi, omega, matrix),
-        "body_momentum_norm": diagnostics.body_momentum_norm(pi, matrix),
-        "spatial_momentum": diagnostics.spatial_momentum(g, pi, matrix),
+        "energy": invariants["energy"],
+        "body_momentum_norm": invariants["momentum norm"],
+        "spatial_momentum": invariants["spatial momentum"],
     }
-    orthogonality = jnp.max(diagnostics.orthogonality_defect(g))
-    if isinstance(bundle, Cartesian):
-        orthogonality = jnp.maximum(orthogonality, jnp.max(diagnostics.orthogonality_defect(ys.fiber.matrix)))
     drifts = {
         "max_body_momentum_norm_drift": diagnostics.max_drift(curves["body_momentum_norm"], relative=True),
         "max_spatial_momentum_drift": diagnostics.max_drift(curves["spatial_momentum"], relative=True),
-        "max_orthogonality_defect": orthogonality,
+        "max_orthogonality_defect": jnp.max(invariants["orthogonality"]),
     }
     return curves, drifts
 
@@ -174,7 +168,7 @@ def execute(run: Run, seed: int, symplecticity: bool = True, cache_dir: Path | N
     traj = jax.block_until_ready(compiled(y0, inertia))
     run_s = time.perf_counter() - start
 
-    curves, drifts = _trajectory_diagnostics(run.bundle, traj.ys, inertia)
+    curves, drifts = _trajectory_diagnostics(field, traj.ys, inertia)
     defect = None
     if run.n == 3 and symplecticity:
         step = _step_map(method, field, run.bundle, run.h, inertia)
