@@ -3,6 +3,7 @@ an independent SciPy reference solution."""
 
 import functools
 
+import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -253,3 +254,28 @@ class PositiveReals(pk.groups.AbstractLieGroup):
     @classmethod
     def dexp_inv(cls, u, v):
         return v
+
+
+def codegen_probe() -> dict[str, np.ndarray]:
+    """A few compiled programs whose values tests/test_xla_codegen.py compares
+    between XLA's CPU code generators: an implicit method through `integrate`
+    (Lobatto IIIA–IIIB 4, symmetric body on SO(3)×SO(3)), Störmer–Verlet
+    through `diffeqsolve`, and the gradient of that solve in the inertia."""
+    cartesian, cotangent = pk.Cartesian(pk.SO3), pk.Cotangent(pk.SO3)
+    inertia = jnp.asarray(INERTIA)
+    lobatto = pk.PRKMK(cartesian, pk.Exp(), pk.lobatto_iiia_iiib4, form="body")
+    lobatto_field, lobatto_y0 = rigid_body_field(cartesian, "body"), initial_state(cartesian)
+    lobatto_run = jax.jit(lambda i: pk.integrate(lobatto, lobatto_field, lobatto_y0, 0.0, 0.05, 200, i).ys)
+    verlet = pk.PRKMK(cotangent, pk.Exp(), pk.stormer_verlet, form="body")
+    term, y0 = pk.PRKMKTerm(rigid_body_field(cotangent, "body")), initial_state(cotangent)
+
+    def final_momentum(i):
+        return diffrax.diffeqsolve(term, pk.PRKMKSolver(verlet), 0.0, 10.0, 0.05, y0, i).ys.fiber[-1]
+
+    lobatto_ys = lobatto_run(inertia)
+    return {
+        "lobatto_q": np.asarray(lobatto_ys.base.matrix),
+        "lobatto_p": np.asarray(lobatto_ys.fiber.matrix),
+        "verlet_momentum": np.asarray(jax.jit(final_momentum)(inertia)),
+        "verlet_gradient": np.asarray(jax.jit(jax.jacrev(final_momentum))(inertia)),
+    }

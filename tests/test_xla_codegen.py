@@ -1,0 +1,38 @@
+"""The tests compile with XLA's fusion emitters off where XLA allows it
+(conftest.py: the older CPU code generator compiles the many small programs
+sooner). Here the same programs compiled by XLA's default code generator,
+in a subprocess with XLA_FLAGS empty, agree with this process's to
+round-off, so what the other tests check holds for the default too."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from helpers import codegen_probe
+
+TESTS = Path(__file__).resolve().parent
+
+_SCRIPT = """
+import sys
+import jax
+import numpy as np
+jax.config.update("jax_enable_x64", True)
+from helpers import codegen_probe
+np.savez(sys.argv[1], **codegen_probe())
+"""
+
+
+def test_default_code_generator_agrees_to_round_off(tmp_path):
+    out = tmp_path / "default.npz"
+    env = dict(os.environ, XLA_FLAGS="", PYTHONPATH=str(TESTS))
+    subprocess.run([sys.executable, "-c", _SCRIPT, str(out)], check=True, env=env, cwd=TESTS, timeout=300)
+    default = np.load(out)
+    here = codegen_probe()
+    assert sorted(default.files) == sorted(here)
+    for name, value in here.items():
+        scale = np.max(np.abs(value))
+        assert scale > 1e-3, name  # values of size, so that the comparison means something
+        assert np.max(np.abs(value - default[name])) <= 1e-12 * scale, name
