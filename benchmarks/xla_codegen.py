@@ -91,9 +91,9 @@ def _value_and_grad(run):
 def programs(quick):
     """name -> (function of (qs, pis, inertia), batch, steps, dtype)."""
     if quick:
+        # Every kind of program of the full run once (integrate, diffeqsolve, a gradient, the peer).
         return {
-            "SV integrate": (_batched(_integrate("stormer_verlet", 10)), 8, 10, jnp.float64),
-            "Lobatto 4 integrate": (_batched(_integrate("lobatto_iiia_iiib4", 10)), 8, 10, jnp.float64),
+            "SV diffeqsolve": (_batched(_diffeqsolve("stormer_verlet", 10)), 8, 10, jnp.float64),
             "SV integrate, value_and_grad": (_value_and_grad(_integrate("stormer_verlet", 10)), 8, 10, jnp.float64),
             "Tsit5 (embedding)": (_batched(_tsit5(10)), 8, 10, jnp.float64),
         }
