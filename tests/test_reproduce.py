@@ -91,6 +91,28 @@ def test_direct_product_loses_the_casimir(results):
     assert results["unreduced_SE_exp"][0]["max_body_momentum_norm_drift"] <= 1e-12
 
 
+def test_an_equal_run_reuses_its_compiled_integration(results):
+    """The fixture executed these runs; executing an equal run (a new `Run`
+    object, as the command makes) compiles nothing and gives the same
+    trajectory."""
+    compiles = []
+
+    def listener(event, duration, **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(duration)
+
+    run = rp.paper_runs()[3]
+    assert run == RUNS[run.name] and run is not RUNS[run.name]
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        record, arrays = rp.execute(run, rb.PAPER_SEED, symplecticity=False)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    assert compiles == []
+    np.testing.assert_array_equal(arrays["Pi"], results[run.name][1]["Pi"])
+    assert record["max_abs_energy_error"] == results[run.name][0]["max_abs_energy_error"]
+
+
 # --- the symplecticity diagnostic --------------------------------------------------
 def _pendulum(t, y, args):
     return y.fiber.value, -jnp.sin(y.base.value)
@@ -256,9 +278,8 @@ def _assert_readme_table_is_this_run(records):
 def test_reproduce_command(tmp_path, capsys):
     # The README's job as it is, at the paper's time scale. --no-cache: the
     # process keeps the test run's compilation cache (conftest.py) instead of
-    # writing to ~/.cache. The integrations the module's fixture ran are
-    # compiled again: JAX does not cache programs with host callbacks, and
-    # their run-time checks (`eqx.error_if`) are callbacks.
+    # writing to ~/.cache. The integrations the module's fixture ran are not
+    # compiled again (`rp.execute` keeps one jitted integration per run).
     rp.main(["--out", str(tmp_path), "--jobs", "1", "--no-cache"])
     for i in range(1, 5):
         assert (tmp_path / f"fig5_{i}.png").stat().st_size > 10_000
