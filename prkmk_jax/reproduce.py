@@ -119,8 +119,9 @@ DEFAULT_CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) /
 """Where compiled programs are kept between invocations (JAX's persistent
 compilation cache). JAX keeps only programs without host callbacks: the
 step-map Jacobians of the symplecticity check and the diagnostics' small
-programs. The integrations are compiled again each time: their run-time
-checks (`eqx.error_if`) are host callbacks."""
+programs. The integrations are compiled again by every new process: their
+run-time checks (`eqx.error_if`) are host callbacks. Within a process,
+`execute` compiles each run's integration once (`_simulator`)."""
 
 
 def use_compilation_cache(cache_dir: Path | None) -> None:
