@@ -155,12 +155,13 @@ def _trajectory_diagnostics(scene: AbstractScene, ys, inertia) -> tuple[dict, di
 
 @functools.cache
 def _simulator(run: Run):
-    """The jitted integration of a run, one per run for the process: executing
-    an equal run again (another seed, or the module's tests before the
-    command) reuses its compiled program. JAX's persistent cache cannot keep
-    it (`DEFAULT_CACHE`)."""
+    """(method, scene, jitted integration) of a run, one per run for the
+    process: executing an equal run again (another seed, or the module's
+    tests before the command) reuses its compiled program. JAX's persistent
+    cache cannot keep it (`DEFAULT_CACHE`)."""
     method, field = method_of(run), scene_of(run)
-    return jax.jit(lambda y0, inertia: integrate(method, field, y0, 0.0, run.h, run.num_steps, inertia, save_every=run.save_every))
+    simulate = jax.jit(lambda y0, inertia: integrate(method, field, y0, 0.0, run.h, run.num_steps, inertia, save_every=run.save_every))
+    return method, field, simulate
 
 
 def execute(run: Run, seed: int, symplecticity: bool = True, cache_dir: Path | None = None) -> tuple[dict, dict]:
@@ -168,10 +169,8 @@ def execute(run: Run, seed: int, symplecticity: bool = True, cache_dir: Path | N
     `symplecticity=False` skips the (compile-heavy) step-map Jacobian."""
     jax.config.update("jax_enable_x64", True)
     use_compilation_cache(cache_dir)
-    method = method_of(run)
-    field = scene_of(run)
+    method, field, simulate = _simulator(run)
     y0, inertia = initial_data(run, seed)
-    simulate = _simulator(run)
     start = time.perf_counter()
     compiled = simulate.lower(y0, inertia).compile()
     compile_s = time.perf_counter() - start
