@@ -6,18 +6,27 @@ import subprocess
 import sys
 import tempfile
 
-# XLA's CPU code generator, chosen before JAX starts its backend. The tests
-# compile about 2000 small programs (3×3 matrices, short loops); with XLA's
-# fusion emitters off, its older code generator compiles them sooner: the
-# whole suite took 5 min 11 s against 7 min 04 s (one run each, one after
-# the other), and benchmarks/xla_codegen.py has the per-program ratios.
+# XLA's CPU compiler, set before JAX starts its backend. The tests compile
+# about 2600 programs (3×3 matrices, short loops) and run most of them for
+# milliseconds, so compiling is most of their time. Two flags make XLA
+# compile them sooner:
+# - `--xla_cpu_use_fusion_emitters=false`, XLA's older code generator: the
+#   whole suite took 5 min 11 s against 7 min 04 s (one run each, one after
+#   the other); benchmarks/xla_codegen.py has the per-program ratios.
+# - `--xla_backend_optimization_level=0`, LLVM without its optimisation
+#   passes: the whole suite took 4 min 21 s and 4 min 24 s (510–515 CPU-s)
+#   against 5 min 10 s and 5 min 18 s (605–621 CPU-s) with the first flag
+#   alone, two runs each, alternating. The compiled code runs slower (the
+#   notebooks' batches up to 3×), so the notebook kernels keep LLVM's
+#   passes (`xla_flags_with_llvm_passes`).
 # Values differ in round-off only, which tests/test_xla_codegen.py checks
-# against the default generator. Left alone when XLA_FLAGS is set
-# (`XLA_FLAGS= pytest` runs the tests under XLA's default). An XLA that does
-# not know the flag aborts the process, so it is tried once in a subprocess
-# first; the xdist workers and the subprocesses of the end-to-end tests
-# inherit the choice through the environment.
-FAST_COMPILING_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false"
+# against XLA's defaults. Left alone when XLA_FLAGS is set (`XLA_FLAGS=
+# pytest` runs the tests under XLA's defaults). An XLA that does not know a
+# flag aborts the process, so they are tried once in a subprocess first;
+# the xdist workers and the subprocesses of the end-to-end tests inherit the
+# choice through the environment.
+LLVM_PASSES_OFF = "--xla_backend_optimization_level=0"
+FAST_COMPILING_XLA_FLAGS = f"--xla_cpu_use_fusion_emitters=false {LLVM_PASSES_OFF}"
 if "XLA_FLAGS" not in os.environ:
     _probe = subprocess.run(
         [sys.executable, "-c", "import jax.numpy as jnp; jnp.zeros(1).block_until_ready()"],
@@ -28,6 +37,7 @@ if "XLA_FLAGS" not in os.environ:
     os.environ["XLA_FLAGS"] = FAST_COMPILING_XLA_FLAGS if _probe.returncode == 0 else ""
 
 import jax  # noqa: E402
+import pytest  # noqa: E402
 from hypothesis import HealthCheck, settings  # noqa: E402
 
 # Python's cyclic garbage collector, less often. Tracing and transforming
@@ -76,3 +86,10 @@ jax.config.update("jax_traceback_in_locations_limit", 0)
 
 settings.register_profile("prkmk", deadline=None, max_examples=40, suppress_health_check=[HealthCheck.too_slow], derandomize=True)
 settings.load_profile("prkmk")
+
+
+@pytest.fixture
+def xla_flags_with_llvm_passes() -> str:
+    """This run's XLA_FLAGS without `LLVM_PASSES_OFF`, for a process whose
+    compiled code runs long enough that LLVM's passes pay for themselves."""
+    return " ".join(flag for flag in os.environ.get("XLA_FLAGS", "").split() if flag != LLVM_PASSES_OFF)

@@ -1,8 +1,8 @@
-"""The tests compile with XLA's fusion emitters off where XLA allows it
-(conftest.py: the older CPU code generator compiles the many small programs
-sooner). Here the same programs compiled by XLA's default code generator,
-in a subprocess with XLA_FLAGS empty, agree with this process's to
-round-off, so what the other tests check holds for the default too."""
+"""The tests compile with XLA's fusion emitters and LLVM's optimisation
+passes off where XLA allows it (conftest.py: the many small programs then
+compile sooner). Here the same programs compiled with XLA's defaults, in a
+subprocess with XLA_FLAGS empty, agree with this process's to round-off,
+so what the other tests check holds for the defaults too."""
 
 import os
 import subprocess
