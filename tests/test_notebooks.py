@@ -44,8 +44,8 @@ def test_notebook_runs(path, monkeypatch, xla_flags_with_llvm_passes):
     monkeypatch.setenv("MPLBACKEND", "Agg")
     # The kernel keeps LLVM's passes, which the other tests turn off
     # (conftest.py): the notebooks run batches and time them, and without
-    # the passes the six took 97–102 s against 93–94 s (two runs each,
-    # alternating), notebook 03 17 s against 8 s.
+    # the passes the six took 97 s and 103 s against 93 s and 94 s (two
+    # runs each, alternating), notebook 03 17 s against 8 s.
     monkeypatch.setenv("XLA_FLAGS", xla_flags_with_llvm_passes)
     nb = nbformat.read(path, as_version=4)
     client = NotebookClient(nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOK_DIR)}})
