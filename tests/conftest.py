@@ -9,7 +9,7 @@ import tempfile
 # XLA's CPU compiler, set before JAX starts its backend. The tests compile
 # thousands of programs (3×3 matrices, short loops; counted below, at the
 # compilation cache) and run most of them for milliseconds, so compiling
-# is most of their time. Two flags make XLA
+# is most of their time. Three flags make XLA
 # compile them sooner:
 # - `--xla_cpu_use_fusion_emitters=false`, XLA's older code generator: the
 #   whole suite took 5 min 11 s against 7 min 04 s (one run each, one after
@@ -20,6 +20,13 @@ import tempfile
 #   alone, two runs each, alternating. The compiled code runs slower (the
 #   notebooks' batches up to 3×), so the notebook kernels keep LLVM's
 #   passes (`xla_flags_with_llvm_passes`).
+# - `--xla_cpu_parallel_codegen_split_count=1`, each program's LLVM module
+#   compiled in one piece instead of split into parts for parallel code
+#   generation, which on 2 cores kept busy by 2 workers only adds work: the
+#   whole suite took 4 min 09 s and 4 min 23 s (486–513 CPU-s) against
+#   4 min 30 s and 4 min 42 s (524–551 CPU-s) with the two flags above
+#   alone, two runs each, alternating; `pytest -m "not end_to_end"` 2 min
+#   08 s and 2 min 14 s against 2 min 26 s and 2 min 24 s.
 # Values differ in round-off only, which tests/test_xla_codegen.py checks
 # against XLA's defaults. Left alone when XLA_FLAGS is set (`XLA_FLAGS=
 # pytest` runs the tests under XLA's defaults). An XLA that does not know a
@@ -27,7 +34,7 @@ import tempfile
 # the xdist workers and the subprocesses of the end-to-end tests inherit the
 # choice through the environment.
 LLVM_PASSES_OFF = "--xla_backend_optimization_level=0"
-FAST_COMPILING_XLA_FLAGS = f"--xla_cpu_use_fusion_emitters=false {LLVM_PASSES_OFF}"
+FAST_COMPILING_XLA_FLAGS = f"--xla_cpu_use_fusion_emitters=false {LLVM_PASSES_OFF} --xla_cpu_parallel_codegen_split_count=1"
 if "XLA_FLAGS" not in os.environ:
     _probe = subprocess.run(
         [sys.executable, "-c", "import jax.numpy as jnp; jnp.zeros(1).block_until_ready()"],
