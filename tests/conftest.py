@@ -18,8 +18,9 @@ import tempfile
 #   passes: the whole suite took 4 min 21 s and 4 min 24 s (510–515 CPU-s)
 #   against 5 min 10 s and 5 min 18 s (605–621 CPU-s) with the first flag
 #   alone, two runs each, alternating. The compiled code runs slower (the
-#   notebooks' batches up to 3×), so the notebook kernels keep LLVM's
-#   passes (`xla_flags_with_llvm_passes`).
+#   notebooks' batches up to 3×), so the kernels of the notebooks whose
+#   batches run long keep LLVM's passes (`xla_flags_with_llvm_passes`,
+#   `KEEP_LLVM_PASSES` in test_notebooks.py).
 # - `--xla_cpu_parallel_codegen_split_count=1`, each program's LLVM module
 #   compiled in one piece instead of split into parts for parallel code
 #   generation, which on 2 cores kept busy by 2 workers only adds work: the
