@@ -1,8 +1,9 @@
 """The tests compile with XLA's fusion emitters and LLVM's optimisation
 passes off, and each program's code generated in one piece, where XLA
-allows it (conftest.py: the many small programs then compile sooner). Here the same programs compiled with XLA's defaults, in a
-subprocess with XLA_FLAGS empty, agree with this process's to round-off,
-so what the other tests check holds for the defaults too."""
+allows it (conftest.py: the many small programs then compile sooner).
+Here the same programs compiled with XLA's defaults, in a subprocess with
+XLA_FLAGS empty, agree with this process's to round-off, so what the
+other tests check holds for the defaults too."""
 
 import os
 import subprocess
