@@ -9,8 +9,7 @@ import tempfile
 # XLA's CPU compiler, set before JAX starts its backend. The tests compile
 # thousands of programs (3×3 matrices, short loops; counted below, at the
 # compilation cache) and run most of them for milliseconds, so compiling
-# is most of their time. Three flags make XLA
-# compile them sooner:
+# is most of their time. Three flags make XLA compile them sooner:
 # - `--xla_cpu_use_fusion_emitters=false`, XLA's older code generator: the
 #   whole suite took 5 min 11 s against 7 min 04 s (one run each, one after
 #   the other); benchmarks/xla_codegen.py has the per-program ratios.
