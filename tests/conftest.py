@@ -101,3 +101,34 @@ def xla_flags_with_llvm_passes() -> str:
     """This run's XLA_FLAGS without `LLVM_PASSES_OFF`, for a process whose
     compiled code runs long enough that LLVM's passes pay for themselves."""
     return " ".join(flag for flag in os.environ.get("XLA_FLAGS", "").split() if flag != LLVM_PASSES_OFF)
+
+
+# The xdist workers take tests in collection order, so a long test
+# collected last runs while the other worker, done, waits. test_xla_codegen
+# (a subprocess compiling under XLA's defaults, ~6 s) is collected last and
+# goes first instead. Measured together with the worker exit below.
+RUN_FIRST = ("test_xla_codegen.py",)
+
+
+def pytest_collection_modifyitems(items):
+    items.sort(key=lambda item: item.path.name not in RUN_FIRST)  # stable: otherwise collection order
+
+
+# An xdist worker ends with `os._exit` once its session is over. By then it
+# has sent its last report to the controller (xdist sends "workerfinished"
+# in pytest_sessionfinish, a synchronous write to the pipe); a normal exit
+# only adds tearing down what the worker built up: JAX's `clean_up` at exit
+# drops the backend and the caches of the ~1500 programs it compiled, then
+# the interpreter frees a heap of millions of objects. In a run of
+# `pytest -m "not end_to_end"` the last worker's end of session to the
+# controller's took 5.1 s, 1.2 s with this. With RUN_FIRST, the whole suite
+# took 3 min 51 s and 3 min 32 s (456 and 418 CPU-s) against 4 min 04 s and
+# 3 min 48 s (477 and 446 CPU-s) without either, alternating. Test outcomes
+# and the exit status come from the reports, so they are unchanged. Not in
+# a run without xdist (`-n0`), which exits as usual.
+@pytest.hookimpl(trylast=True)
+def pytest_unconfigure(config):
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
