@@ -119,14 +119,15 @@ def pytest_collection_modifyitems(items):
 # has sent its last report to the controller (xdist sends "workerfinished"
 # in pytest_sessionfinish, a synchronous write to the pipe); a normal exit
 # only adds tearing down what the worker built up: JAX's `clean_up` at exit
-# drops the backend and the caches of the ~1500 programs it compiled, then
-# the interpreter frees a heap of millions of objects. From the last
-# worker's end of session to the controller's took 5.1–5.4 s, 1.2–1.4 s
-# with this. With RUN_FIRST, the whole suite took 3 min 29 s – 3 min 51 s
-# against 3 min 34 s – 4 min 04 s without either, five runs each,
-# alternating, each run 3–16 s shorter than the one paired with it. Test
-# outcomes and the exit status come from the reports, so they are
-# unchanged. Not in a run without xdist (`-n0`), which exits as usual.
+# drops the backend and the caches of the programs it compiled (~1300 each
+# in `-m "not end_to_end"`, 2616 in all), then the interpreter frees a heap
+# of millions of objects. From the last worker's end of session to the
+# controller's took 5.1–5.4 s, 1.2–1.4 s with this. With RUN_FIRST, the
+# whole suite took 3 min 29 s – 3 min 51 s against 3 min 34 s – 4 min 04 s
+# without either, five runs each, alternating, each run 3–16 s shorter than
+# the one paired with it. Test outcomes and the exit status come from the
+# reports, so they are unchanged. Not in a run without xdist (`-n0`), which
+# exits as usual.
 @pytest.hookimpl(trylast=True)
 def pytest_unconfigure(config):
     if os.environ.get("PYTEST_XDIST_WORKER"):
