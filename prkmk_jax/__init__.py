@@ -7,6 +7,9 @@ from . import (
     diagnostics as diagnostics,
 )
 from . import (
+    exact_flows as exact_flows,
+)
+from . import (
     groups as groups,
 )
 from . import (
@@ -100,6 +103,7 @@ from .series import dexp_inv_series as dexp_inv_series
 from .series import dexp_series as dexp_series
 from .solver import PRKMKSolver as PRKMKSolver
 from .solver import PRKMKTerm as PRKMKTerm
+from .splitting import Splitting as Splitting
 from .step import PRKMK as PRKMK
 from .step import RESULTS as RESULTS
 from .tableaus import (

@@ -26,6 +26,7 @@ from jaxtyping import Array, PyTree
 from .bundles import BundleElement
 from .compositions import CompositionCoefficients
 from .method import RESULTS, AbstractMethod, VectorField, first_failure, flag_nonfinite
+from .splitting import Splitting
 from .step import PRKMK, static_combination
 
 
@@ -47,25 +48,29 @@ class AbstractMadeOfSteps(AbstractMethod):
     def form(self):  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a property implements an AbstractVar
         return self.method.form
 
+    def check_fits(self, vector_field):
+        self.method.check_fits(vector_field)
+
 
 class Adjoint(AbstractMadeOfSteps):
-    """The adjoint Φ*_h = (Φ_{−h})⁻¹ of a PRKMK method Φ.
+    """The adjoint Φ*_h = (Φ_{−h})⁻¹ of a PRKMK method Φ, or of a `Splitting`
+    (symmetric: its adjoint is itself, and its steps are taken as they are).
 
-    Φ*_h(yₙ) is the y with Φ_{−h}(y) = yₙ: the method's stages centred at
-    the step's end. With U_i = −h(Σⱼ a¹ᵢⱼKⱼ, Σⱼ a²ᵢⱼLⱼ), W = h(Σⱼ b¹ⱼKⱼ, Σⱼ b²ⱼLⱼ),
-    yₙ₊₁ = f(W)·yₙ (space form; yₙ·f(W) in body form) and stage points
-    Y_i = f(U_i)·yₙ₊₁, the slopes solve (K_i, L_i) = df⁻¹_{U_i}(X(tₙ₊₁ − c_i h,
-    Y_i)) — one implicit system for all stages (yₙ₊₁ depends on every slope),
-    solved by the method's root finder. Then f(−W)·yₙ₊₁ = yₙ is the reversed
-    step, since f(−W) = f(W)⁻¹ for both coordinate maps. In a vector space
-    this is the PRK method of the adjoint tableau.
+        Φ*_h(yₙ) is the y with Φ_{−h}(y) = yₙ: the method's stages centred at
+        the step's end. With U_i = −h(Σⱼ a¹ᵢⱼKⱼ, Σⱼ a²ᵢⱼLⱼ), W = h(Σⱼ b¹ⱼKⱼ, Σⱼ b²ⱼLⱼ),
+        yₙ₊₁ = f(W)·yₙ (space form; yₙ·f(W) in body form) and stage points
+        Y_i = f(U_i)·yₙ₊₁, the slopes solve (K_i, L_i) = df⁻¹_{U_i}(X(tₙ₊₁ − c_i h,
+        Y_i)) — one implicit system for all stages (yₙ₊₁ depends on every slope),
+        solved by the method's root finder. Then f(−W)·yₙ₊₁ = yₙ is the reversed
+        step, since f(−W) = f(W)⁻¹ for both coordinate maps. In a vector space
+        this is the PRK method of the adjoint tableau.
     """
 
-    method: PRKMK  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a field narrows an AbstractVar's type
+    method: PRKMK | Splitting  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a field narrows an AbstractVar's type
 
     def __check_init__(self):
-        if not isinstance(self.method, PRKMK):
-            raise TypeError(f"Adjoint takes a PRKMK method (its stages are re-centred), got {type(self.method).__name__}.")
+        if not isinstance(self.method, (PRKMK, Splitting)):
+            raise TypeError(f"Adjoint takes a PRKMK method (its stages are re-centred) or a Splitting, got {type(self.method).__name__}.")
 
     @property
     def order(self) -> int:
@@ -75,9 +80,11 @@ class Adjoint(AbstractMadeOfSteps):
         return self.method.initial_guesses(vector_field, t, y, args)
 
     def start_field(self, carried):
-        return carried[0]
+        return self.method.start_field(carried)
 
     def step_with_guesses(self, vector_field, t, y, dt, args, carried):
+        if isinstance(self.method, Splitting):  # symmetric: Φ* = Φ
+            return self.method.step_with_guesses(vector_field, t, y, dt, args, carried)
         method, tab = self.method, self.method.tableau
         dtype = jnp.result_type(*jax.tree.leaves(y))
         dt = jnp.asarray(dt, dtype)
@@ -116,13 +123,14 @@ class Symmetrized(AbstractMadeOfSteps):
     """Φ̂_h = Φ*_{h/2} ∘ Φ_{h/2}: half a step of a PRKMK method Φ, then half a
     step of its adjoint (`Adjoint`). Φ̂ is symmetric for any Φ, of order p
     (p even) or p + 1 (p odd: symplectic Euler gives order 2), and a
-    symmetric base for `Composition` where Φ itself is not symmetric."""
+    symmetric base for `Composition` where Φ itself is not symmetric. Of a
+    `Splitting` (already symmetric) it is two half steps."""
 
-    method: PRKMK  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a field narrows an AbstractVar's type
+    method: PRKMK | Splitting  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a field narrows an AbstractVar's type
 
     def __check_init__(self):
-        if not isinstance(self.method, PRKMK):
-            raise TypeError(f"Symmetrized takes a PRKMK method, got {type(self.method).__name__}.")
+        if not isinstance(self.method, (PRKMK, Splitting)):
+            raise TypeError(f"Symmetrized takes a PRKMK method or a Splitting, got {type(self.method).__name__}.")
 
     @property
     def adjoint(self) -> Adjoint:

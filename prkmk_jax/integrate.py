@@ -155,7 +155,8 @@ def resume(
 def _check_method(method) -> None:
     if not isinstance(method, AbstractMethod):
         raise TypeError(
-            f"method must be a PRKMK method (or one built from them: Composition, Adjoint, Symmetrized), got {type(method).__name__}."
+            f"method must be a PRKMK method, a Splitting, or one built from them (Composition, Adjoint, Symmetrized), "
+            f"got {type(method).__name__}."
         )
 
 
@@ -168,6 +169,7 @@ def _checked_start(method, vector_field, y, t, dt, args):
     t = jnp.asarray(t, dtype)
     dt = _checked_dt(dt, dtype)
     args = _check_args(args)
+    method.check_fits(vector_field)
     method.check_vector_field(vector_field, t, y, args)
     return y, t, dt, args
 

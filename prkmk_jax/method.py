@@ -86,6 +86,13 @@ class AbstractMethod(eqx.Module):
         taken."""
 
     @abc.abstractmethod
+    def check_fits(self, vector_field: VectorField) -> None:
+        """Trace-time check that this method can integrate `vector_field`
+        (`ValueError` if not): a PRKMK method takes any field on its bundle,
+        a `Splitting` only the scene it was built for. The drivers call it
+        with the user's field."""
+
+    @abc.abstractmethod
     def start_field(self, carried: Any) -> AlgebraPair:
         """The generator X(tₙ, yₙ) at the start of the step that returned
         `carried` (it is part of what a step carries)."""

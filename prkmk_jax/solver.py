@@ -71,19 +71,21 @@ def _user_clock(terms) -> _UserClock:
     return _UserClock(terms, jnp.asarray(terms.contr(0, 1)))
 
 
-def _check_terms(terms, y0) -> None:
-    """Refuse, by name, terms and states that only a Euclidean solve produces."""
+def _check_terms(terms, y0) -> PRKMKTerm:
+    """Refuse, by name, terms and states that only a Euclidean solve
+    produces; return the user's `PRKMKTerm`."""
     if isinstance(y0, tuple) and len(y0) == 4 and isinstance(y0[0], BundleElement):
         # BacksolveAdjoint's backward solve: state (y, a_y, a_args, a_terms).
         raise NotImplementedError(_EUCLIDEAN_USE)
     # diffeqsolve may wrap the user's term (a backward-in-time solve), so look
     # for a PRKMKTerm anywhere in the terms' tree.
-    found = jax.tree.leaves(terms, is_leaf=lambda node: isinstance(node, PRKMKTerm))
-    if not any(isinstance(node, PRKMKTerm) for node in found):
+    found = [node for node in jax.tree.leaves(terms, is_leaf=lambda node: isinstance(node, PRKMKTerm)) if isinstance(node, PRKMKTerm)]
+    if not found:
         raise TypeError(
             f"PRKMKSolver needs its vector field as a PRKMKTerm(f) with f(t, y, args) -> (ξ, η), "
             f"got {type(terms).__name__}; an ODETerm's dy/dt has no meaning on the group."
         )
+    return found[0]
 
 
 class PRKMKSolver(diffrax.AbstractSolver):
@@ -133,7 +135,9 @@ class PRKMKSolver(diffrax.AbstractSolver):
 
     def __check_init__(self):
         if not isinstance(self.method, AbstractMethod):
-            raise TypeError(f"PRKMKSolver wraps a PRKMK method (or a composition of them), got {type(self.method).__name__}.")
+            raise TypeError(
+                f"PRKMKSolver wraps a PRKMK method, a Splitting, or a method built from them, got {type(self.method).__name__}."
+            )
 
     def order(self, terms):
         return self.method.order
@@ -143,8 +147,9 @@ class PRKMKSolver(diffrax.AbstractSolver):
         return self.method.order + 1 if self.adaptive else None
 
     def init(self, terms, t0, t1, y0, args):
-        _check_terms(terms, y0)
+        term = _check_terms(terms, y0)
         method, field = self.method, _user_clock(terms)
+        method.check_fits(term.vector_field)
         # Static type/shape errors now; the run-time checks of the data (a
         # finite, orthogonal, det +1 base) act through the checked value, so
         # the solver state is computed from it: an invalid y0 raises.

@@ -109,6 +109,9 @@ class PRKMK(AbstractMethod):
     def start_field(self, carried):
         return carried[0]
 
+    def check_fits(self, vector_field: VectorField) -> None:
+        """Any field on the bundle (its shapes are checked by `check_vector_field`)."""
+
     def initial_guesses(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None):
         """The state `step_with_guesses` carries, before the first step: the
         field X(t₀, y₀), and the same field as every stage slope (so the first

@@ -14,9 +14,11 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
 from ..bundles import AbstractBundle, AlgebraPair, BundleElement, Cotangent
+from ..compositions import CompositionCoefficients
 from ..coordinates import AbstractCoordinates, Exp
 from ..groups import SO3, SOn
 from ..method import Time
+from ..splitting import Splitting
 from ..step import PRKMK
 from ..tableaus import PartitionedTableau
 
@@ -56,6 +58,14 @@ class AbstractScene(eqx.Module):
         """The PRKMK method of `tableau` for this scene's bundle and form
         (exp coordinates unless given; `options` go to `PRKMK`)."""
         return PRKMK(self.bundle, Exp() if coordinates is None else coordinates, tableau=tableau, form=self.form, **options)
+
+    def splitting(self, coefficients: CompositionCoefficients | None = None, coordinates: AbstractCoordinates | None = None) -> Splitting:
+        """The exact-flow splitting of this scene (`Splitting`), of order 2 or,
+        with `coefficients`, of their order; `TypeError` for a scene that
+        does not split."""
+        coordinates = Exp() if coordinates is None else coordinates
+        # Splitting checks the scene's type itself, with its own message.
+        return Splitting(scene=self, coefficients=coefficients, coordinates=coordinates)  # pyright: ignore[reportCallIssue, reportArgumentType]  # equinox: AbstractVars implemented by properties are not __init__ fields
 
 
 def rotation_matrix(element) -> Array:

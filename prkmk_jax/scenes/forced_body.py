@@ -15,11 +15,14 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
-from .. import diagnostics
+from .. import diagnostics, exact_flows
 from ..bundles import BundleElement
 from ..groups import hat
 from ..method import Time
 from .base import AbstractBodyOnTStarSO3, rotation_matrix
+
+FORCED_BODY_AXES = (0, 1, 2)
+"""The order of the axis terms in the forced body's splitting."""
 
 
 class HarmonicTorque(eqx.Module):
@@ -44,10 +47,15 @@ class ForcedParameters(eqx.Module):
     """The torque law's parameters (differentiable, e.g. for fitting)."""
 
 
-class ForcedRigidBody(AbstractBodyOnTStarSO3):
+class ForcedRigidBody(AbstractBodyOnTStarSO3, exact_flows.AbstractSplitScene):
     """The rigid body with a control torque on `Cotangent(SO3)`, body form;
     `args` is `ForcedParameters`. `torque_law(t, params)` returns the
-    body-frame torque (default `harmonic_torque`)."""
+    body-frame torque (default `harmonic_torque`).
+
+    It splits (`splitting()`) into the torque's kick Π ↦ Π + hτ(t), at the
+    time frozen (outermost), and the three axis terms of the kinetic energy;
+    the clock runs in the middle part (`splitting` module), so the split
+    holds for any torque law of time."""
 
     torque_law: Callable[[Time, PyTree], Float[Array, "3"]] = eqx.field(static=True, default=harmonic_torque)
 
@@ -65,6 +73,21 @@ class ForcedRigidBody(AbstractBodyOnTStarSO3):
             "energy": diagnostics.energy(y.fiber, y.fiber / args.inertia),
             "orthogonality": diagnostics.orthogonality_defect(rotation_matrix(y.base)),
         }
+
+    def exact_flows(self, args: ForcedParameters):
+        moments = exact_flows.principal_moments(args.inertia, "ForcedRigidBody", batched=True)
+
+        def torque(t, z, args):
+            return jnp.moveaxis(jnp.broadcast_to(self.torque_law(t, args.torque), z.shape[1:] + (3,)), -1, 0)
+
+        kick = exact_flows.MomentumKick((9, 10, 11), torque)
+        return (kick,) + exact_flows.axis_rotations(FORCED_BODY_AXES, moments, momentum_row=9, matrix_rows=(0,))
+
+    def pack(self, y):
+        return exact_flows.packed_rotation_and_vector(y)
+
+    def unpack(self, z, like):
+        return exact_flows.unpacked_rotation_and_vector(z, like)
 
     def embedding_field(self, t, z, args: ForcedParameters):
         q, pi = z[:9].reshape(3, 3), z[9:]

@@ -26,7 +26,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .. import diagnostics
+from .. import diagnostics, exact_flows
 from ..bundles import AbstractBundle, BundleElement, Cotangent, DirectProduct
 from ..groups import SO3, hat
 from .base import AbstractScene, rotation_and_vector_embedding, rotation_matrix
@@ -48,7 +48,23 @@ def _vertical(q: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     return q[..., 2, :]
 
 
-class HeavyTop(AbstractScene):
+HEAVY_TOP_AXES = (0, 1, 2)
+"""The order of the heavy top's axis terms in its splitting (after the
+gravity kick, outermost first)."""
+
+
+def gravity_torque(lever: Array):
+    """(t, z, args) ↦ Γ × ℓ on the packed state (Γ = Qᵀe₃, rows 6–8)."""
+
+    def torque(t, z, args):
+        g0, g1, g2 = z[6], z[7], z[8]
+        l0, l1, l2 = lever[..., 0], lever[..., 1], lever[..., 2]
+        return jnp.stack([g1 * l2 - g2 * l1, g2 * l0 - g0 * l2, g0 * l1 - g1 * l0])
+
+    return torque
+
+
+class HeavyTop(AbstractScene, exact_flows.AbstractSplitScene):
     """The heavy top in body form; `args` is `TopParameters`.
 
     `bundle` is `Cotangent(SO3)` (default), where the product supplies
@@ -57,7 +73,12 @@ class HeavyTop(AbstractScene):
     direct product's dexp⁻¹ and Cayley's are the identity on the fiber), so
     a Lagrange top's spin Π₃, whose slope (Π × Ω + Γ × ℓ)₃ vanishes, is kept
     to round-off by every method. On T*SO(3) the fiber is also turned by
-    Ad*, and the spin's error is the method's."""
+    Ad*, and the spin's error is the method's.
+
+    It splits (`splitting()`) into the gravity kick Π ↦ Π + hΓ × ℓ (the
+    flow of the potential ℓ·Γ: the attitude stands still) and the three
+    axis terms of the kinetic energy, in that order (the kick outermost).
+    Each part keeps Γ·Π, so the splitting keeps it to round-off."""
 
     bundle: AbstractBundle = eqx.field(default_factory=lambda: Cotangent(SO3))
     form: ClassVar[Literal["space", "body"]] = "body"  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox lets a ClassVar implement an AbstractVar
@@ -90,6 +111,17 @@ class HeavyTop(AbstractScene):
 
     def to_embedding(self, y: BundleElement) -> Float[Array, "*batch 12"]:
         return rotation_and_vector_embedding(y)
+
+    def exact_flows(self, args: TopParameters):
+        moments = exact_flows.principal_moments(args.inertia, "HeavyTop", batched=True)
+        kick = exact_flows.MomentumKick((9, 10, 11), gravity_torque(jnp.asarray(args.lever)))
+        return (kick,) + exact_flows.axis_rotations(HEAVY_TOP_AXES, moments, momentum_row=9, matrix_rows=(0,))
+
+    def pack(self, y):
+        return exact_flows.packed_rotation_and_vector(y)
+
+    def unpack(self, z, like):
+        return exact_flows.unpacked_rotation_and_vector(z, like)
 
 
 class SphericalTop(AbstractScene):

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .. import diagnostics
+from .. import diagnostics, exact_flows
 from ..bundles import AbstractBundle, AbstractSemidirect, BundleElement, Cartesian, Cotangent, DirectProduct
 from ..groups import SO3, SOn, hat, vee
 from .base import AbstractScene, rotation_and_vector_embedding, rotation_matrix
@@ -206,14 +206,22 @@ def elliptic_momentum(pi0, inertia, t) -> np.ndarray:
     return out
 
 
-class FreeRigidBody(AbstractScene):
+FREE_BODY_AXES = (0, 1, 2)
+"""The order of the free body's axis terms in its splitting, outermost first
+(the last one takes the full step)."""
+
+
+class FreeRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
     """The unreduced free rigid body g' = gΩ, Π' = Π × Ω on T*SO(3), body form.
 
     `bundle` is `Cotangent(SO3)` (default) or `Semidirect(SO3, "left")`,
     where the product supplies Π × Ω and the generator is (Ω, 0), or
     `DirectProduct(SO3)` with (Ω, Π × Ω). `args` is the inertia: principal
     moments (3,) or a symmetric positive-definite tensor (3, 3) in the body
-    frame (Ω = I⁻¹Π)."""
+    frame (Ω = I⁻¹Π).
+
+    It splits (`splitting()`) into the three axis terms ½Πᵢ²/Iᵢ of its
+    energy, each a rotation about a body axis (principal moments only)."""
 
     bundle: AbstractBundle = eqx.field(default_factory=lambda: Cotangent(SO3))
     form: Literal["space", "body"] = eqx.field(default="body", static=True)
@@ -249,13 +257,27 @@ class FreeRigidBody(AbstractScene):
     def embedding_field(self, t, z, inertia):
         return embedding_field(t, z, inertia)
 
+    def exact_flows(self, inertia):
+        moments = exact_flows.principal_moments(inertia, "FreeRigidBody")
+        return exact_flows.axis_rotations(FREE_BODY_AXES, moments, momentum_row=9, matrix_rows=(0,))
 
-class SymmetricRigidBody(AbstractScene):
+    def pack(self, y):
+        return exact_flows.packed_rotation_and_vector(y)
+
+    def unpack(self, z, like):
+        return exact_flows.unpacked_rotation_and_vector(z, like)
+
+
+class SymmetricRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
     """The symmetric rigid body (3.3) on SO(n)×SO(n), body form: Q' = QΩ,
     P' = PΩ with M = QᵀP − PᵀQ and Ω = I⁻¹M (`angular_velocity`).
 
     `bundle` is `Cartesian(SO3)` (default; `args` the principal moments (3,))
-    or `Cartesian(SOn)` (`args` the n "masses" J, M = JΩ + ΩJ)."""
+    or `Cartesian(SOn)` (`args` the n "masses" J, M = JΩ + ΩJ).
+
+    On SO(3)×SO(3) it splits (`splitting()`) into three axis terms: along
+    the i-th, Mᵢ is constant and Q and P turn together about eᵢ at the rate
+    Mᵢ/Iᵢ, y·exp(t(ωᵢeᵢ, ωᵢeᵢ))."""
 
     bundle: AbstractBundle = eqx.field(default_factory=lambda: Cartesian(SO3))
     form: Literal["space", "body"] = eqx.field(default="body", static=True)
@@ -292,3 +314,30 @@ class SymmetricRigidBody(AbstractScene):
         omega = angular_velocity(vee(m), inertia) if n == 3 else angular_velocity(m, inertia)
         omega_hat = hat(omega) if n == 3 else omega
         return jnp.concatenate([(q @ omega_hat).ravel(), (p @ omega_hat).ravel()])
+
+    def exact_flows(self, inertia):
+        if self.bundle.base is not SO3:
+            raise ValueError("SymmetricRigidBody splits on Cartesian(SO3) only; on SO(n) use a PRKMK method.")
+        moments = exact_flows.principal_moments(inertia, "SymmetricRigidBody", batched=True)
+
+        def rate(axis):
+            # Mᵢ = Aₖⱼ − Aⱼₖ with A = QᵀP, Aₐᵦ = Σᵣ Q_rₐ P_rᵦ, (i, j, k) cyclic.
+            j, k = (axis + 1) % 3, (axis + 2) % 3
+
+            def entry(z, a, b):
+                return sum(z[3 * r + a] * z[9 + 3 * r + b] for r in range(3))
+
+            return lambda z, args: (entry(z, k, j) - entry(z, j, k)) / moments[..., axis]
+
+        pairs = [exact_flows.column_pairs(axis, 0) + exact_flows.column_pairs(axis, 9) for axis in FREE_BODY_AXES]
+        return tuple(exact_flows.AxisRotation(axis, pair, rate(axis)) for axis, pair in zip(FREE_BODY_AXES, pairs))
+
+    def pack(self, y):
+        q, p = rotation_matrix(y.base), rotation_matrix(y.fiber)
+        flat = jnp.concatenate([q.reshape(*q.shape[:-2], 9), p.reshape(*p.shape[:-2], 9)], axis=-1)
+        return jnp.moveaxis(flat, -1, 0)
+
+    def unpack(self, z, like):
+        flat = jnp.moveaxis(z, 0, -1)
+        batch = flat.shape[:-1]
+        return BundleElement(SO3(flat[..., :9].reshape(*batch, 3, 3)), SO3(flat[..., 9:].reshape(*batch, 3, 3)))

@@ -1,0 +1,188 @@
+"""Parts of a vector field whose flows are known in closed form, for the
+exact-flow splitting methods (`splitting.Splitting`).
+
+A scene that splits (`AbstractSplitScene`) writes its field as a sum of
+parts f = f₁ + … + f_k and gives each part's exact flow. The rigid-body
+scenes need two kinds:
+
+* `AxisRotation`: the flow of one axis term ½Πᵢ²/Iᵢ of the kinetic energy.
+  Along it Πᵢ, hence ωᵢ = Πᵢ/Iᵢ, is constant, and the state turns about the
+  body axis eᵢ at the rate ωᵢ: on T*SO(3) this is y·exp(t(ωᵢeᵢ, 0)), the
+  bundle group's own exponential (Q ↦ Q Rᵢ, Π ↦ Rᵢᵀ Π). With `Cayley`
+  coordinates the rotation is cay(tωᵢeᵢ), turned by 2·atan(tωᵢ/2) instead of
+  tωᵢ: not the exact flow, but a symmetric second-order one along the same
+  orbit, which keeps everything the exact one keeps.
+* `MomentumKick`: the flow of a potential, or of an external torque at a
+  frozen time: the attitude stands still and the momentum moves by h times a
+  torque that depends on the attitude (and time) only: y·exp((0, hτ)).
+
+Flows act on the state packed as one array with its components first
+(`AbstractSplitScene.pack`): (d, *batch), each row one entry of the state.
+Every flow returns the whole array rebuilt: XLA then keeps each sub-step's
+result instead of recomputing the chain of cheap rotations inside every
+later one, and the rows are contiguous over the batch, the layout it
+vectorises (`benchmarks/splitting.py` measures both).
+"""
+
+import abc
+from collections.abc import Callable
+from typing import Any, Literal
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float, PyTree
+
+from .bundles import AbstractBundle, BundleElement
+from .coordinates import AbstractCoordinates, Cayley
+from .groups.so3 import SO3
+from .groups.trig import sincos
+
+Packed = Float[Array, "d *batch"]
+"""A state packed with its components first: one row per entry (for T*SO(3):
+Q row-major, then Π), any batch axes after."""
+
+
+def rotation_sine_cosine(coordinates: AbstractCoordinates, angle: Array) -> tuple[Array, Array]:
+    """(sin, cos) of the planar rotation that the coordinate map gives the
+    algebra element `angle`·eᵢ: the exponential turns by `angle`, the Cayley
+    map by 2·atan(angle/2), i.e. cos = (1 − a²/4)/(1 + a²/4), sin = a/(1 + a²/4)."""
+    if isinstance(coordinates, Cayley):
+        quarter = 0.25 * angle * angle
+        scale = 1.0 / (1.0 + quarter)
+        return angle * scale, (1.0 - quarter) * scale
+    return sincos(angle)
+
+
+def rotated_rows(z: Packed, pairs: tuple[tuple[int, int], ...], sine: Array, cosine: Array) -> Packed:
+    """z with each pair of rows (j, k) turned in its plane: (z_j, z_k) ↦
+    (c z_j + s z_k, −s z_j + c z_k), the whole array rebuilt."""
+    rows = list(z)
+    for j, k in pairs:
+        a, b = rows[j], rows[k]
+        rows[j], rows[k] = cosine * a + sine * b, cosine * b - sine * a
+    return jnp.stack(rows)
+
+
+class AbstractExactFlow(eqx.Module):
+    """One part of a split vector field and its flow."""
+
+    @abc.abstractmethod
+    def flow(self, coordinates: AbstractCoordinates, t: Array, z: Packed, h: Array, args: PyTree) -> Packed:
+        """The state `z` moved by the part's flow over time `h` (either sign),
+        the part evaluated at time `t` (a part that depends on time is frozen
+        there)."""
+
+
+class AxisRotation(AbstractExactFlow):
+    """The flow of one axis term of a kinetic energy: every pair of rows in
+    `pairs` turns by the angle h·`rate`(z, args), which this flow leaves
+    constant (so the flow is exact for `Exp`, see the module docstring)."""
+
+    axis: int = eqx.field(static=True)
+    """The body axis, 0, 1 or 2."""
+    pairs: tuple[tuple[int, int], ...] = eqx.field(static=True)
+    """Row pairs (j, k) of the packed state that turn: the attitude's columns
+    about `axis` and the momentum's components."""
+    rate: Callable[[Packed, PyTree], Array]
+    """(z, args) ↦ the angular rate about `axis`, shape (*batch,)."""
+
+    def __check_init__(self):
+        if self.axis not in (0, 1, 2):
+            raise ValueError(f"axis must be 0, 1 or 2, got {self.axis!r}.")
+
+    def flow(self, coordinates, t, z, h, args):
+        sine, cosine = rotation_sine_cosine(coordinates, h * self.rate(z, args))
+        return rotated_rows(z, self.pairs, sine, cosine)
+
+
+class MomentumKick(AbstractExactFlow):
+    """The flow of a part that moves the momentum only, at a rate that does
+    not depend on the momentum: rows `rows` of z grow by h·`torque`(t, z, args)."""
+
+    rows: tuple[int, ...] = eqx.field(static=True)
+    """The rows of the momentum in the packed state."""
+    torque: Callable[[Array, Packed, PyTree], Array]
+    """(t, z, args) ↦ the body torque, shape (len(rows), *batch); it must not
+    read the rows it moves."""
+
+    def flow(self, coordinates, t, z, h, args):
+        torque = self.torque(t, z, args)
+        moved = {row: z[row] + h * torque[k] for k, row in enumerate(self.rows)}
+        return jnp.stack([moved.get(r, z[r]) for r in range(z.shape[0])])
+
+
+class AbstractSplitScene(eqx.Module):
+    """A scene whose field is a sum of parts with exact flows: what a
+    `Splitting` method needs of it."""
+
+    bundle: eqx.AbstractVar[AbstractBundle]
+    form: eqx.AbstractVar[Literal["space", "body"]]
+
+    @abc.abstractmethod
+    def exact_flows(self, args: PyTree, /) -> tuple[AbstractExactFlow, ...]:
+        """The parts, outermost first: `Splitting` runs them as the palindrome
+        f₁(h/2) … f_{k−1}(h/2) f_k(h) f_{k−1}(h/2) … f₁(h/2). Raises
+        `ValueError` at trace time where `args` admit no such split (say, an
+        inertia tensor that is not diagonal)."""
+
+    @abc.abstractmethod
+    def pack(self, y: BundleElement) -> Packed:
+        """The state as one array, components first (see `Packed`)."""
+
+    @abc.abstractmethod
+    def unpack(self, z: Packed, like: BundleElement) -> BundleElement:
+        """Inverse of `pack`; `like` is a state of the same structure."""
+
+
+def packed_rotation_and_vector(y: BundleElement) -> Packed:
+    """(Q row-major, v) of a state on SO(3) with a 3-vector fiber, components first."""
+    if not isinstance(y.base, SO3):
+        raise TypeError(f"this scene's state lives on SO3, got a {type(y.base).__name__} base.")
+    q, v = y.base.matrix, y.fiber
+    flat = jnp.concatenate([q.reshape(*q.shape[:-2], 9), v], axis=-1)
+    return jnp.moveaxis(flat, -1, 0)
+
+
+def unpacked_rotation_and_vector(z: Packed, like: BundleElement) -> BundleElement:
+    """Inverse of `packed_rotation_and_vector`."""
+    flat = jnp.moveaxis(z, 0, -1)
+    del like  # every such state has the same structure
+    return BundleElement(SO3(flat[..., :9].reshape(*flat.shape[:-1], 3, 3)), flat[..., 9:])
+
+
+def axis_rotations(axes: tuple[int, ...], moments: Array, momentum_row: int, matrix_rows: tuple[int, ...]) -> tuple[AxisRotation, ...]:
+    """The axis terms ½Πᵢ²/Iᵢ of a rigid body's kinetic energy, in the order
+    `axes`: rows `momentum_row` + (0, 1, 2) hold Π, and each 3×3 matrix packed
+    from a row in `matrix_rows` turns with the body (its columns)."""
+
+    def rotation(axis):
+        pairs = sum((column_pairs(axis, first) for first in matrix_rows), ()) + vector_pair(axis, momentum_row)
+        return AxisRotation(axis, pairs, lambda z, args: z[momentum_row + axis] / moments[..., axis])
+
+    return tuple(rotation(axis) for axis in axes)
+
+
+def column_pairs(axis: int, first_row: int = 0) -> tuple[tuple[int, int], ...]:
+    """The row pairs of a row-major 3×3 matrix packed from `first_row` whose
+    columns (j, k) = (axis + 1, axis + 2) mod 3 turn under M ↦ M·Rₐₓᵢₛ."""
+    j, k = (axis + 1) % 3, (axis + 2) % 3
+    return tuple((first_row + 3 * r + j, first_row + 3 * r + k) for r in range(3))
+
+
+def vector_pair(axis: int, first_row: int) -> tuple[tuple[int, int], ...]:
+    """The row pair of a 3-vector packed from `first_row` that turns under
+    v ↦ Rₐₓᵢₛᵀ v."""
+    return (((first_row + (axis + 1) % 3), (first_row + (axis + 2) % 3)),)
+
+
+def principal_moments(inertia: Any, scene: str, batched: bool = False) -> Array:
+    """`inertia` as principal moments (3,), or (*batch, 3) where `batched`:
+    a split into axis terms needs the body axes to be principal (a diagonal
+    inertia)."""
+    shape = jnp.shape(inertia)
+    if not (shape == (3,) or (batched and len(shape) > 1 and shape[-1] == 3)):
+        raise ValueError(
+            f"{scene}: the split into axis rotations needs the principal moments of inertia, shape (3,), got shape {shape}; "
+            "for a full inertia tensor use a PRKMK method, or rotate the body frame to the principal axes."
+        )
+    return jnp.asarray(inertia)

@@ -1,0 +1,259 @@
+"""Exact-flow splitting methods: the parts against the fields and the bundle
+group's own exponential, empirical orders against DOP853, symmetry, what
+they keep over long runs, gradients, batches, float32 and refusals."""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import prkmk_jax as pk
+from helpers import final_state_by_steps, max_leaf_difference, scene_reference
+from prkmk_jax.groups import sincos
+from prkmk_jax.scenes import (
+    ForcedParameters,
+    ForcedRigidBody,
+    FreeRigidBody,
+    HarmonicTorque,
+    HeavyTop,
+    SphericalTop,
+    SymmetricRigidBody,
+    TopParameters,
+    random_rotation,
+    symmetric_initial_state,
+)
+
+INERTIA = jnp.array([7 / 8, 5 / 8, 1 / 4])
+MOMENTUM = jnp.array([0.25, 0.625, 0.875])
+FREE = FreeRigidBody()
+TOP = HeavyTop()
+FORCED = ForcedRigidBody()
+SYMMETRIC = SymmetricRigidBody()
+TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
+FORCED_ARGS = ForcedParameters(INERTIA, HarmonicTorque(jnp.array([0.3, 0.2, 0.1]), jnp.array([1.0, 2.0, 3.0]), jnp.array([0.0, 0.5, 1.0])))
+
+
+def _state(seed, momentum=MOMENTUM):
+    return pk.BundleElement(pk.SO3(jnp.asarray(random_rotation(seed))), jnp.asarray(momentum))
+
+
+CASES = {  # name: (scene, y0, args)
+    "free body": (FREE, _state(0), INERTIA),
+    "heavy top": (TOP, _state(5, [0.3, -0.4, 1.5]), TOP_ARGS),
+    "forced body": (FORCED, _state(1), FORCED_ARGS),
+    "symmetric body": (SYMMETRIC, symmetric_initial_state(random_rotation(0), np.asarray(MOMENTUM)), INERTIA),
+    "free body on G×g": (FreeRigidBody(pk.DirectProduct(pk.SO3)), _state(2), INERTIA),
+}
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_sincos_against_numpy_and_its_derivative(dtype):
+    eps = float(jnp.finfo(dtype).eps)
+    limit = 1e5 if dtype == jnp.float64 else 1e3
+    rng = np.random.default_rng(0)
+    angles = np.concatenate([rng.uniform(-1, 1, 2000), rng.uniform(-limit, limit, 2000), [0.0, np.pi / 4, -np.pi / 2, np.pi]]).astype(dtype)
+    sine, cosine = jax.jit(sincos)(jnp.asarray(angles))
+    exact = angles.astype(np.float64)
+    np.testing.assert_allclose(np.asarray(sine, np.float64), np.sin(exact), rtol=0, atol=4 * eps)
+    np.testing.assert_allclose(np.asarray(cosine, np.float64), np.cos(exact), rtol=0, atol=4 * eps)
+    derivative = jax.vmap(jax.grad(lambda a: 2 * sincos(a)[0] + sincos(a)[1]))(jnp.asarray(angles[:50]))
+    np.testing.assert_allclose(derivative, 2 * np.cos(angles[:50]) - np.sin(angles[:50]), rtol=0, atol=8 * eps)
+
+
+@pytest.mark.parametrize("name", ["free body", "heavy top", "forced body", "symmetric body"])
+def test_the_parts_add_up_to_the_field(name):
+    """Σ_parts d/dh φ_part(h)(z) at h = 0, through each part's flow, equals
+    the scene's embedding field: the split is of the scene's own equations."""
+    scene, y0, args = CASES[name]
+    z = scene.pack(y0)
+    t = jnp.asarray(0.7)
+    total = jnp.zeros_like(z)
+    for part in scene.exact_flows(args):
+        _, velocity = jax.jvp(lambda h, part=part: part.flow(pk.Exp(), t, z, h, args), (jnp.asarray(0.0),), (jnp.asarray(1.0),))
+        total = total + velocity
+    np.testing.assert_allclose(total, scene.embedding_field(t, scene.to_embedding(y0), args), atol=1e-14)
+
+
+@pytest.mark.parametrize("name", ["free body", "heavy top", "symmetric body"])
+def test_each_part_is_an_exact_flow(name):
+    """φ(a + b) = φ(b)∘φ(a): what the exact flow of an autonomous part does,
+    and what merging adjacent sub-steps relies on."""
+    scene, y0, args = CASES[name]
+    z, t = scene.pack(y0), jnp.asarray(0.0)
+    for part in scene.exact_flows(args):
+        once = part.flow(pk.Exp(), t, z, jnp.asarray(0.7), args)
+        twice = part.flow(pk.Exp(), t, part.flow(pk.Exp(), t, z, jnp.asarray(0.3), args), jnp.asarray(0.4), args)
+        np.testing.assert_allclose(once, twice, atol=1e-14)
+
+
+@pytest.mark.parametrize("coordinates", [pk.Exp(), pk.Cayley()], ids=["exp", "cayley"])
+def test_an_axis_rotation_is_the_bundle_group_action(coordinates):
+    """On T*SO(3) the i-th axis flow is y·f(h(ωᵢeᵢ, 0)) with the bundle's own
+    exp or Cayley map (`Cotangent.exp_multiply`, `cayley_multiply`)."""
+    y0 = _state(3, [0.4, -1.1, 0.8])
+    h = jnp.asarray(0.9)
+    for part in FREE.exact_flows(INERTIA):
+        moved = FREE.unpack(part.flow(coordinates, jnp.asarray(0.0), FREE.pack(y0), h, INERTIA), y0)
+        u = h * y0.fiber[part.axis] / INERTIA[part.axis] * jnp.eye(3)[part.axis]
+        expected = coordinates.apply(FREE.bundle, (u, None), y0, "body")
+        assert max_leaf_difference(moved, expected) < 1e-15
+
+
+ORDER_RUNS = {  # name: (coefficients, steps at T = 2)
+    "Strang": (None, [20, 40, 80, 160]),
+    "Suzuki 5": (pk.suzuki_5, [10, 20, 40, 80]),
+    "Kahan-Li 6": (pk.kahan_li_6, [8, 12, 16, 24]),
+    "Kahan-Li 8": (pk.kahan_li_8, [6, 8, 12, 16]),
+}
+
+
+@pytest.mark.parametrize("run", list(ORDER_RUNS))
+@pytest.mark.parametrize("name", ["free body", "heavy top"])
+def test_empirical_order(name, run):
+    scene, y0, args = CASES[name]
+    coefficients, steps = ORDER_RUNS[run]
+    method = scene.splitting(coefficients)
+    t_end = 2.0
+    reference = scene_reference(scene, y0, t_end, args, t_eval=[t_end])[-1]
+    final_state = final_state_by_steps(method, scene)
+    errors = []
+    for n in steps:
+        y, ok = final_state(y0, t_end / n, n, args)
+        assert ok
+        errors.append(np.max(np.abs(np.asarray(scene.to_embedding(y)) - reference)))
+    slope = np.polyfit(np.log(t_end / np.asarray(steps)), np.log(errors), 1)[0]
+    assert abs(slope - method.order) < 0.2, (slope, errors)
+
+
+@pytest.mark.parametrize("name", ["forced body", "symmetric body", "free body on G×g"])
+@pytest.mark.parametrize("coordinates", [pk.Exp(), pk.Cayley()], ids=["exp", "cayley"])
+def test_order_on_the_other_scenes(name, coordinates):
+    scene, y0, args = CASES[name]
+    t_end, steps = 2.0, np.array([20, 40, 80])
+    reference = scene_reference(scene, y0, t_end, args, t_eval=[t_end])[-1]
+    for coefficients in (None, pk.suzuki_5):
+        method = scene.splitting(coefficients, coordinates)
+        final_state = final_state_by_steps(method, scene)
+        errors = [np.max(np.abs(np.asarray(scene.to_embedding(final_state(y0, t_end / n, n, args)[0])) - reference)) for n in steps]
+        slope = np.polyfit(np.log(t_end / steps), np.log(errors), 1)[0]
+        assert abs(slope - method.order) < 0.2, (coefficients, slope, errors)
+
+
+@pytest.mark.parametrize("name", ["free body", "heavy top", "forced body", "symmetric body"])
+def test_symmetric_to_round_off(name):
+    scene, y0, args = CASES[name]
+    for coefficients in (None, pk.kahan_li_6):
+        for coordinates in (pk.Exp(), pk.Cayley()):
+            defect = pk.symmetry_defect(scene.splitting(coefficients, coordinates), scene, y0, 0.2, args, t=0.3)
+            assert defect <= 1e-13, (coefficients, coordinates, defect)
+
+
+def test_free_body_invariants_over_a_long_run():
+    """T = 1000: |Π|, the spatial momentum QΠ and QᵀQ to round-off (each
+    part keeps them exactly); the energy error stays bounded."""
+    for method, h in ((FREE.splitting(), 0.05), (FREE.splitting(pk.kahan_li_6), 0.25)):
+        n = int(round(1000 / h))
+        ys = pk.integrate(method, FREE, _state(0), 0.0, h, n, INERTIA, save_every=n // 200).ys
+        values = FREE.invariants(ys, INERTIA)
+        assert np.max(np.abs(values["momentum norm"] - values["momentum norm"][0])) < 1e-13
+        assert np.max(np.abs(values["spatial momentum"] - values["spatial momentum"][0])) < 1e-13
+        assert np.max(values["orthogonality"]) < 1e-13
+        energy_error = np.abs(values["energy"] - values["energy"][0])
+        assert energy_error[-50:].max() < 1.5 * energy_error[:50].max() + 1e-14
+
+
+def test_heavy_top_casimir_over_a_long_run():
+    """T = 1000: Γ·Π and QᵀQ to round-off; the energy error bounded."""
+    method, h = TOP.splitting(pk.suzuki_5), 0.1
+    ys = pk.integrate(method, TOP, CASES["heavy top"][1], 0.0, h, 10000, TOP_ARGS, save_every=50).ys
+    values = TOP.invariants(ys, TOP_ARGS)
+    assert np.max(np.abs(values["vertical momentum"] - values["vertical momentum"][0])) < 1e-13
+    assert np.max(values["orthogonality"]) < 1e-13
+    energy_error = np.abs(values["energy"] - values["energy"][0])
+    assert energy_error[-50:].max() < 1.5 * energy_error[:50].max() + 1e-14
+
+
+def _lever_loss(solve):
+    def loss(lever):
+        args = TopParameters(TOP_ARGS.inertia, lever)
+        return jnp.sum(solve(args) * jnp.array([0.2, -0.5, 1.0]))
+
+    return jax.jit(loss)
+
+
+def _finite_difference(fn, x, step=1e-6):
+    return np.array([(fn(x + step * e) - fn(x - step * e)) / (2 * step) for e in np.eye(x.shape[0])])
+
+
+def test_gradients_through_integrate_and_diffeqsolve_match_finite_differences():
+    method = TOP.splitting(pk.suzuki_5)
+    y0 = CASES["heavy top"][1]
+    through_integrate = _lever_loss(lambda args: pk.integrate(method, TOP, y0, 0.0, 0.1, 20, args, save_every=20).ys.fiber[-1])
+    through_diffeqsolve = _lever_loss(
+        lambda args: diffrax.diffeqsolve(pk.PRKMKTerm(TOP), pk.PRKMKSolver(method), 0.0, 2.0, 0.1, y0, args).ys.fiber[-1]
+    )
+    lever = TOP_ARGS.lever
+    for loss in (through_integrate, through_diffeqsolve):
+        np.testing.assert_allclose(jax.grad(loss)(lever), _finite_difference(loss, lever), rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(through_integrate(lever), through_diffeqsolve(lever), rtol=1e-14)
+
+
+def test_a_batch_in_the_state_and_vmap_give_the_single_runs():
+    method = FREE.splitting(pk.kahan_li_6)
+    qs = jnp.asarray(np.stack([random_rotation(k) for k in range(3)]))
+    momenta = MOMENTUM * jnp.array([[1.0], [1.1], [0.9]])
+
+    def final(q, p):
+        return pk.integrate(method, FREE, pk.BundleElement(pk.SO3(q), p), 0.0, 0.1, 30, INERTIA, save_every=30).ys
+
+    batched = jax.jit(final)(qs, momenta)
+    mapped = jax.jit(jax.vmap(final))(qs, momenta)
+    for k in range(3):
+        single = final(qs[k], momenta[k])
+        assert max_leaf_difference(jax.tree.map(lambda a: a[:, k], batched), single) < 1e-14
+        assert max_leaf_difference(jax.tree.map(lambda a: a[k], mapped), single) < 1e-14
+
+
+def test_float32():
+    """A float32 run stays on the group (renormalised each step, as PRKMK
+    does) and within float32 accuracy of the float64 run."""
+    y0 = _state(0)
+    y32 = pk.BundleElement(pk.SO3(y0.base.matrix.astype(jnp.float32)), y0.fiber.astype(jnp.float32))
+    method = FREE.splitting(pk.suzuki_5)
+    run32 = pk.integrate(method, FREE, y32, 0.0, 0.05, 200, INERTIA.astype(jnp.float32), save_every=200).ys
+    run64 = pk.integrate(method, FREE, y0, 0.0, 0.05, 200, INERTIA, save_every=200).ys
+    assert run32.fiber.dtype == jnp.float32
+    assert float(pk.diagnostics.orthogonality_defect(run32.base.matrix[-1])) < 1e-6
+    assert max_leaf_difference(jax.tree.map(lambda a: a.astype(jnp.float64), run32), run64) < 1e-4
+
+
+def test_the_wrappers_take_a_splitting():
+    """Adjoint of a symmetric method is itself, Symmetrized is two half
+    steps, and Composition composes it like any symmetric base."""
+    y0, t, h = _state(0), 0.0, 0.3
+    strang = FREE.splitting()
+    step = strang.step(FREE, t, y0, h, INERTIA)[0]
+    assert max_leaf_difference(pk.Adjoint(strang).step(FREE, t, y0, h, INERTIA)[0], step) == 0
+    half = strang.step(FREE, t, strang.step(FREE, t, y0, h / 2, INERTIA)[0], h / 2, INERTIA)[0]
+    assert max_leaf_difference(pk.Symmetrized(strang).step(FREE, t, y0, h, INERTIA)[0], half) < 1e-15
+    composed = pk.Composition(strang, pk.suzuki_5).step(FREE, t, y0, h, INERTIA)[0]
+    fused = FREE.splitting(pk.suzuki_5).step(FREE, t, y0, h, INERTIA)[0]
+    assert max_leaf_difference(composed, fused) < 1e-14
+
+
+def test_refusals():
+    with pytest.raises(ValueError, match="principal moments"):
+        pk.integrate(FREE.splitting(), FREE, _state(0), 0.0, 0.1, 2, jnp.diag(INERTIA))
+    with pytest.raises(ValueError, match="integrates the scene it was built for"):
+        pk.integrate(FREE.splitting(), TOP, _state(0), 0.0, 0.1, 2, TOP_ARGS)
+    with pytest.raises(ValueError, match="integrates the scene it was built for"):
+        diffrax.diffeqsolve(pk.PRKMKTerm(TOP), pk.PRKMKSolver(FREE.splitting()), 0.0, 0.2, 0.1, _state(0), TOP_ARGS)
+    with pytest.raises(TypeError, match="splits into exactly solvable parts"):
+        SphericalTop().splitting()
+    with pytest.raises(ValueError, match="Cartesian\\(SO3\\) only"):
+        scene = SymmetricRigidBody(pk.Cartesian(pk.SOn))
+        y0 = pk.BundleElement(pk.SOn(jnp.eye(4)), pk.SOn(jnp.eye(4)))
+        pk.integrate(scene.splitting(), scene, y0, 0.0, 0.1, 2, jnp.ones(4))
+    with pytest.raises(ValueError, match="Strang splitting has order 2"):
+        FREE.splitting(pk.triple_jump(4))
