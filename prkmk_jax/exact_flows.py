@@ -25,8 +25,9 @@ vectorises (`benchmarks/splitting.py` measures both).
 """
 
 import abc
+import math
 from collections.abc import Callable
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -37,9 +38,22 @@ from .coordinates import AbstractCoordinates, Cayley
 from .groups.so3 import SO3
 from .groups.trig import sincos
 
+VECTORISED_BATCH = 16
+"""From this many trajectories in the state on, rotations take their sines
+from `sincos` and `Splitting` computes each sub-step once (a barrier to
+XLA's fusion). Below it the step is one fused program with XLA's own sine
+and cosine, which for a few trajectories runs faster and compiles sooner
+(`benchmarks/splitting.py`, `--layouts`). Under `jax.vmap` the state a step
+sees is one trajectory, so the vmapped step takes this path too."""
+
 Packed = Float[Array, "d *batch"]
 """A state packed with its components first: one row per entry (for T*SO(3):
 Q row-major, then Π), any batch axes after."""
+
+
+def is_vectorised(z: Packed) -> bool:
+    """Whether the state holds at least `VECTORISED_BATCH` trajectories."""
+    return math.prod(z.shape[1:]) >= VECTORISED_BATCH
 
 
 def rotation_sine_cosine(coordinates: AbstractCoordinates, angle: Array) -> tuple[Array, Array]:
@@ -50,7 +64,9 @@ def rotation_sine_cosine(coordinates: AbstractCoordinates, angle: Array) -> tupl
         quarter = 0.25 * angle * angle
         scale = 1.0 / (1.0 + quarter)
         return angle * scale, (1.0 - quarter) * scale
-    return sincos(angle)
+    if math.prod(jnp.shape(angle)) >= VECTORISED_BATCH:
+        return sincos(angle)
+    return jnp.sin(angle), jnp.cos(angle)
 
 
 def rotated_rows(z: Packed, pairs: tuple[tuple[int, int], ...], sine: Array, cosine: Array) -> Packed:
@@ -66,6 +82,12 @@ def rotated_rows(z: Packed, pairs: tuple[tuple[int, int], ...], sine: Array, cos
 class AbstractExactFlow(eqx.Module):
     """One part of a split vector field and its flow."""
 
+    always_materialised: ClassVar[bool]
+    """Whether `Splitting` has XLA compute this flow's result once even for a
+    few trajectories: a flow of cheap arithmetic alone would otherwise be
+    recomputed inside each later sub-step that reads it (see
+    `VECTORISED_BATCH`)."""
+
     @abc.abstractmethod
     def flow(self, coordinates: AbstractCoordinates, t: Array, z: Packed, h: Array, args: PyTree) -> Packed:
         """The state `z` moved by the part's flow over time `h` (either sign),
@@ -78,6 +100,7 @@ class AxisRotation(AbstractExactFlow):
     `pairs` turns by the angle h·`rate`(z, args), which this flow leaves
     constant (so the flow is exact for `Exp`, see the module docstring)."""
 
+    always_materialised: ClassVar[bool] = False  # XLA computes a sine once
     axis: int = eqx.field(static=True)
     """The body axis, 0, 1 or 2."""
     pairs: tuple[tuple[int, int], ...] = eqx.field(static=True)
@@ -99,6 +122,7 @@ class MomentumKick(AbstractExactFlow):
     """The flow of a part that moves the momentum only, at a rate that does
     not depend on the momentum: rows `rows` of z grow by h·`torque`(t, z, args)."""
 
+    always_materialised: ClassVar[bool] = True
     rows: tuple[int, ...] = eqx.field(static=True)
     """The rows of the momentum in the packed state."""
     torque: Callable[[Array, Packed, PyTree], Array]
@@ -126,12 +150,66 @@ class AbstractSplitScene(eqx.Module):
         inertia tensor that is not diagonal)."""
 
     @abc.abstractmethod
-    def pack(self, y: BundleElement) -> Packed:
-        """The state as one array, components first (see `Packed`)."""
+    def pack(self, y: BundleElement, args: PyTree, /) -> Packed:
+        """The state as one array, components first (see `Packed`), in the
+        frame the parts of `exact_flows(args)` are written in."""
 
     @abc.abstractmethod
-    def unpack(self, z: Packed, like: BundleElement) -> BundleElement:
+    def unpack(self, z: Packed, like: BundleElement, args: PyTree, /) -> BundleElement:
         """Inverse of `pack`; `like` is a state of the same structure."""
+
+
+class InertiaOrderedFrame(eqx.Module):
+    """The body axes relabelled by increasing moment of inertia: virtual axis
+    a is body axis σ(a), σ = argsort(moments).
+
+    The splittings are written in this frame, with the axis terms in the order
+    of the virtual axes (0 outermost, 2 in the middle with the full step): the
+    axis of smallest inertia (fastest rotation) outermost and the axis of
+    largest inertia in the middle gave the smallest error of the six orders
+    on the free body and the heavy top (`benchmarks/splitting.py` records the
+    comparison). Moments that vary over a batch give each trajectory its own σ.
+    An odd σ makes the virtual frame left-handed: a rotation there turns
+    the other way (`parity`), and a cross product changes sign."""
+
+    order: Array
+    """σ, shape (*batch, 3), int."""
+    parity: Array
+    """+1 where σ is even (a cyclic shift), −1 where it is odd; (*batch,)."""
+
+    @classmethod
+    def of(cls, moments: Array) -> "InertiaOrderedFrame":
+        order = jnp.argsort(moments, axis=-1, stable=True)
+        s0, s1, s2 = order[..., 0], order[..., 1], order[..., 2]
+        parity = jnp.sign((s1 - s0) * (s2 - s0) * (s2 - s1)).astype(moments.dtype)
+        return cls(order, parity)
+
+    def vector(self, v: Array) -> Array:
+        """v[σ] along the last axis: a body vector's components in this frame."""
+        return jnp.take_along_axis(v, jnp.broadcast_to(self.order, jnp.shape(v)[:-1] + (3,)), axis=-1)
+
+    def _rows(self, z: Packed, matrix_rows: tuple[int, ...], vector_rows: tuple[int, ...]) -> Array:
+        """For each row of the relabelled state, the row of z it comes from."""
+        sigma = jnp.moveaxis(jnp.broadcast_to(self.order, z.shape[1:] + (3,)), -1, 0)
+        sources = [jnp.full(z.shape[1:], r, sigma.dtype) for r in range(z.shape[0])]
+        for first in matrix_rows:  # a matrix's columns, row-major
+            for r in range(3):
+                for a in range(3):
+                    sources[first + 3 * r + a] = first + 3 * r + sigma[a]
+        for first in vector_rows:
+            for a in range(3):
+                sources[first + a] = first + sigma[a]
+        return jnp.stack(sources)
+
+    def relabel(self, z: Packed, matrix_rows: tuple[int, ...], vector_rows: tuple[int, ...]) -> Packed:
+        """z with the columns of its matrices and the components of its
+        vectors in this frame."""
+        return jnp.take_along_axis(z, self._rows(z, matrix_rows, vector_rows), axis=0)
+
+    def restore(self, z: Packed, matrix_rows: tuple[int, ...], vector_rows: tuple[int, ...]) -> Packed:
+        """Inverse of `relabel`: the relabelling by σ⁻¹."""
+        inverse = InertiaOrderedFrame(jnp.argsort(self.order, axis=-1), self.parity)
+        return inverse.relabel(z, matrix_rows, vector_rows)
 
 
 def packed_rotation_and_vector(y: BundleElement) -> Packed:
@@ -150,16 +228,18 @@ def unpacked_rotation_and_vector(z: Packed, like: BundleElement) -> BundleElemen
     return BundleElement(SO3(flat[..., :9].reshape(*flat.shape[:-1], 3, 3)), flat[..., 9:])
 
 
-def axis_rotations(axes: tuple[int, ...], moments: Array, momentum_row: int, matrix_rows: tuple[int, ...]) -> tuple[AxisRotation, ...]:
-    """The axis terms ½Πᵢ²/Iᵢ of a rigid body's kinetic energy, in the order
-    `axes`: rows `momentum_row` + (0, 1, 2) hold Π, and each 3×3 matrix packed
-    from a row in `matrix_rows` turns with the body (its columns)."""
+def axis_rotations(frame: InertiaOrderedFrame, moments: Array, momentum_row: int, matrix_rows: tuple[int, ...]) -> tuple[AxisRotation, ...]:
+    """The axis terms ½Πᵢ²/Iᵢ of a rigid body's kinetic energy on the state
+    packed in `frame` (`InertiaOrderedFrame.relabel`), in the order of the
+    frame's axes: rows `momentum_row` + (0, 1, 2) hold Π, and each 3×3 matrix
+    packed from a row in `matrix_rows` turns with the body (its columns)."""
+    ordered = frame.vector(moments)
 
     def rotation(axis):
         pairs = sum((column_pairs(axis, first) for first in matrix_rows), ()) + vector_pair(axis, momentum_row)
-        return AxisRotation(axis, pairs, lambda z, args: z[momentum_row + axis] / moments[..., axis])
+        return AxisRotation(axis, pairs, lambda z, args: frame.parity * z[momentum_row + axis] / ordered[..., axis])
 
-    return tuple(rotation(axis) for axis in axes)
+    return tuple(rotation(axis) for axis in range(3))
 
 
 def column_pairs(axis: int, first_row: int = 0) -> tuple[tuple[int, int], ...]:

@@ -36,7 +36,7 @@ from jaxtyping import PyTree
 from .bundles import BundleElement
 from .compositions import CompositionCoefficients
 from .coordinates import AbstractCoordinates, Cayley, Exp
-from .exact_flows import AbstractSplitScene
+from .exact_flows import AbstractSplitScene, is_vectorised
 from .method import LOW_PRECISION_EPS, RESULTS, AbstractMethod, Time, VectorField, flag_nonfinite
 
 
@@ -137,14 +137,17 @@ class Splitting(AbstractMethod):
         t, dt = jnp.asarray(t, dtype), jnp.asarray(dt, dtype)
         flows = self.scene.exact_flows(args)
         fractions = (1.0,) if self.coefficients is None else self.coefficients.fractions
-        z = self.scene.pack(y)
+        z = self.scene.pack(y, args)
         for part, start, step in sub_steps(len(flows), fractions, merge=isinstance(self.coordinates, Exp)):
             z = flows[part].flow(self.coordinates, t + start * dt, z, step * dt, args)
-            # Each sub-step's state is computed once: XLA would otherwise fuse
-            # the chain of cheap rotations into its consumers and recompute
-            # every earlier one inside each later one.
-            z = jax.lax.optimization_barrier(z)
-        y_next = self.scene.unpack(z, y)
+            if is_vectorised(z) or flows[part].always_materialised:
+                # Each sub-step's state is computed once: XLA would otherwise
+                # fuse the chain of cheap rotations (`sincos` is arithmetic) into
+                # its consumers and recompute every earlier one inside each
+                # later one. With XLA's sine, which it computes once, a few
+                # trajectories need no barrier (`exact_flows.VECTORISED_BATCH`).
+                z = jax.lax.optimization_barrier(z)
+        y_next = self.scene.unpack(z, y, args)
         if jnp.finfo(dtype).eps > LOW_PRECISION_EPS:
             # As `AbstractMethod.advance`: the rounding of each rotation is
             # systematic for steady motions and would pull the state off the group.

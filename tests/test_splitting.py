@@ -66,13 +66,23 @@ def test_the_parts_add_up_to_the_field(name):
     """Σ_parts d/dh φ_part(h)(z) at h = 0, through each part's flow, equals
     the scene's embedding field: the split is of the scene's own equations."""
     scene, y0, args = CASES[name]
-    z = scene.pack(y0)
+    z = scene.pack(y0, args)
     t = jnp.asarray(0.7)
-    total = jnp.zeros_like(z)
+    total = jnp.zeros_like(scene.to_embedding(y0))
+
+    def moved(part, h):
+        return scene.to_embedding(scene.unpack(part.flow(pk.Exp(), t, z, h, args), y0, args))
+
     for part in scene.exact_flows(args):
-        _, velocity = jax.jvp(lambda h, part=part: part.flow(pk.Exp(), t, z, h, args), (jnp.asarray(0.0),), (jnp.asarray(1.0),))
+        _, velocity = jax.jvp(lambda h, part=part: moved(part, h), (jnp.asarray(0.0),), (jnp.asarray(1.0),))
         total = total + velocity
     np.testing.assert_allclose(total, scene.embedding_field(t, scene.to_embedding(y0), args), atol=1e-14)
+
+
+@pytest.mark.parametrize("name", ["free body", "heavy top", "symmetric body"])
+def test_packing_round_trips(name):
+    scene, y0, args = CASES[name]
+    assert max_leaf_difference(scene.unpack(scene.pack(y0, args), y0, args), y0) == 0
 
 
 @pytest.mark.parametrize("name", ["free body", "heavy top", "symmetric body"])
@@ -80,7 +90,7 @@ def test_each_part_is_an_exact_flow(name):
     """φ(a + b) = φ(b)∘φ(a): what the exact flow of an autonomous part does,
     and what merging adjacent sub-steps relies on."""
     scene, y0, args = CASES[name]
-    z, t = scene.pack(y0), jnp.asarray(0.0)
+    z, t = scene.pack(y0, args), jnp.asarray(0.0)
     for part in scene.exact_flows(args):
         once = part.flow(pk.Exp(), t, z, jnp.asarray(0.7), args)
         twice = part.flow(pk.Exp(), t, part.flow(pk.Exp(), t, z, jnp.asarray(0.3), args), jnp.asarray(0.4), args)
@@ -90,39 +100,49 @@ def test_each_part_is_an_exact_flow(name):
 @pytest.mark.parametrize("coordinates", [pk.Exp(), pk.Cayley()], ids=["exp", "cayley"])
 def test_an_axis_rotation_is_the_bundle_group_action(coordinates):
     """On T*SO(3) the i-th axis flow is y·f(h(ωᵢeᵢ, 0)) with the bundle's own
-    exp or Cayley map (`Cotangent.exp_multiply`, `cayley_multiply`)."""
+    exp or Cayley map (`Cotangent.exp_multiply`, `cayley_multiply`). The
+    parts turn about the body axes by increasing inertia."""
     y0 = _state(3, [0.4, -1.1, 0.8])
     h = jnp.asarray(0.9)
+    by_inertia = np.argsort(np.asarray(INERTIA))
     for part in FREE.exact_flows(INERTIA):
-        moved = FREE.unpack(part.flow(coordinates, jnp.asarray(0.0), FREE.pack(y0), h, INERTIA), y0)
-        u = h * y0.fiber[part.axis] / INERTIA[part.axis] * jnp.eye(3)[part.axis]
+        moved = FREE.unpack(part.flow(coordinates, jnp.asarray(0.0), FREE.pack(y0, INERTIA), h, INERTIA), y0, INERTIA)
+        axis = by_inertia[part.axis]
+        u = h * y0.fiber[axis] / INERTIA[axis] * jnp.eye(3)[axis]
         expected = coordinates.apply(FREE.bundle, (u, None), y0, "body")
         assert max_leaf_difference(moved, expected) < 1e-15
 
 
-ORDER_RUNS = {  # name: (coefficients, steps at T = 2)
-    "Strang": (None, [20, 40, 80, 160]),
-    "Suzuki 5": (pk.suzuki_5, [10, 20, 40, 80]),
-    "Kahan-Li 6": (pk.kahan_li_6, [8, 12, 16, 24]),
-    "Kahan-Li 8": (pk.kahan_li_8, [6, 8, 12, 16]),
+ORDER_RUNS = {  # name: (coefficients, steps per unit of time), where the error is asymptotic and above round-off
+    "Strang": (None, [10, 20, 40, 80]),
+    "Suzuki 5": (pk.suzuki_5, [5, 10, 20, 40]),
+    "Kahan-Li 6": (pk.kahan_li_6, [4, 6, 8, 12]),
+    "Kahan-Li 8": (pk.kahan_li_8, {"free body": [4, 5, 6, 8], "heavy top": [6, 8, 10, 12]}),
 }
 
 
 @pytest.mark.parametrize("run", list(ORDER_RUNS))
 @pytest.mark.parametrize("name", ["free body", "heavy top"])
 def test_empirical_order(name, run):
+    """The largest error at t = 1, 2, …, 6 against DOP853: a high-order
+    composition's error at one time rises and falls with the phase, its
+    envelope over several times falls as h^p."""
     scene, y0, args = CASES[name]
     coefficients, steps = ORDER_RUNS[run]
+    steps = steps[name] if isinstance(steps, dict) else steps
     method = scene.splitting(coefficients)
-    t_end = 2.0
-    reference = scene_reference(scene, y0, t_end, args, t_eval=[t_end])[-1]
-    final_state = final_state_by_steps(method, scene)
+    times = np.arange(1.0, 7.0)
+    reference = scene_reference(scene, y0, times[-1], args, t_eval=times)
+    advance = final_state_by_steps(method, scene)  # the scenes are autonomous: each unit of time starts at t = 0
     errors = []
     for n in steps:
-        y, ok = final_state(y0, t_end / n, n, args)
-        assert ok
-        errors.append(np.max(np.abs(np.asarray(scene.to_embedding(y)) - reference)))
-    slope = np.polyfit(np.log(t_end / np.asarray(steps)), np.log(errors), 1)[0]
+        y, worst = y0, 0.0
+        for expected in reference:
+            y, ok = advance(y, 1.0 / n, n, args)
+            assert ok
+            worst = max(worst, float(np.max(np.abs(np.asarray(scene.to_embedding(y)) - expected))))
+        errors.append(worst)
+    slope = np.polyfit(np.log(1.0 / np.asarray(steps)), np.log(errors), 1)[0]
     assert abs(slope - method.order) < 0.2, (slope, errors)
 
 
@@ -211,8 +231,8 @@ def test_a_batch_in_the_state_and_vmap_give_the_single_runs():
     mapped = jax.jit(jax.vmap(final))(qs, momenta)
     for k in range(3):
         single = final(qs[k], momenta[k])
-        assert max_leaf_difference(jax.tree.map(lambda a: a[:, k], batched), single) < 1e-14
-        assert max_leaf_difference(jax.tree.map(lambda a: a[k], mapped), single) < 1e-14
+        assert max_leaf_difference(jax.tree.map(lambda a: a[:, k], batched), single) < 1e-13
+        assert max_leaf_difference(jax.tree.map(lambda a: a[k], mapped), single) < 1e-13
 
 
 def test_float32():

@@ -21,9 +21,6 @@ from ..groups import hat
 from ..method import Time
 from .base import AbstractBodyOnTStarSO3, rotation_matrix
 
-FORCED_BODY_AXES = (0, 1, 2)
-"""The order of the axis terms in the forced body's splitting."""
-
 
 class HarmonicTorque(eqx.Module):
     """τ(t)_k = a_k sin(ω_k t + φ_k): the parameters of `harmonic_torque`."""
@@ -76,18 +73,22 @@ class ForcedRigidBody(AbstractBodyOnTStarSO3, exact_flows.AbstractSplitScene):
 
     def exact_flows(self, args: ForcedParameters):
         moments = exact_flows.principal_moments(args.inertia, "ForcedRigidBody", batched=True)
+        frame = exact_flows.InertiaOrderedFrame.of(moments)
 
         def torque(t, z, args):
-            return jnp.moveaxis(jnp.broadcast_to(self.torque_law(t, args.torque), z.shape[1:] + (3,)), -1, 0)
+            body = jnp.broadcast_to(self.torque_law(t, args.torque), z.shape[1:] + (3,))
+            return jnp.moveaxis(frame.vector(body), -1, 0)
 
         kick = exact_flows.MomentumKick((9, 10, 11), torque)
-        return (kick,) + exact_flows.axis_rotations(FORCED_BODY_AXES, moments, momentum_row=9, matrix_rows=(0,))
+        return (kick,) + exact_flows.axis_rotations(frame, moments, momentum_row=9, matrix_rows=(0,))
 
-    def pack(self, y):
-        return exact_flows.packed_rotation_and_vector(y)
+    def pack(self, y, args: ForcedParameters):
+        frame = exact_flows.InertiaOrderedFrame.of(exact_flows.principal_moments(args.inertia, "ForcedRigidBody", batched=True))
+        return frame.relabel(exact_flows.packed_rotation_and_vector(y), (0,), (9,))
 
-    def unpack(self, z, like):
-        return exact_flows.unpacked_rotation_and_vector(z, like)
+    def unpack(self, z, like, args: ForcedParameters):
+        frame = exact_flows.InertiaOrderedFrame.of(exact_flows.principal_moments(args.inertia, "ForcedRigidBody", batched=True))
+        return exact_flows.unpacked_rotation_and_vector(frame.restore(z, (0,), (9,)), like)
 
     def embedding_field(self, t, z, args: ForcedParameters):
         q, pi = z[:9].reshape(3, 3), z[9:]

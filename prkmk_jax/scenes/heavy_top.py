@@ -48,18 +48,16 @@ def _vertical(q: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     return q[..., 2, :]
 
 
-HEAVY_TOP_AXES = (0, 1, 2)
-"""The order of the heavy top's axis terms in its splitting (after the
-gravity kick, outermost first)."""
-
-
-def gravity_torque(lever: Array):
-    """(t, z, args) ↦ Γ × ℓ on the packed state (Γ = Qᵀe₃, rows 6–8)."""
+def gravity_torque(frame: exact_flows.InertiaOrderedFrame, lever: Array):
+    """(t, z, args) ↦ Γ × ℓ on the state packed in `frame` (Γ = Qᵀe₃, rows
+    6–8), in that frame's components: the parity times the cross product
+    of the relabelled vectors."""
+    ordered = frame.vector(lever)
 
     def torque(t, z, args):
         g0, g1, g2 = z[6], z[7], z[8]
-        l0, l1, l2 = lever[..., 0], lever[..., 1], lever[..., 2]
-        return jnp.stack([g1 * l2 - g2 * l1, g2 * l0 - g0 * l2, g0 * l1 - g1 * l0])
+        l0, l1, l2 = ordered[..., 0], ordered[..., 1], ordered[..., 2]
+        return frame.parity * jnp.stack([g1 * l2 - g2 * l1, g2 * l0 - g0 * l2, g0 * l1 - g1 * l0])
 
     return torque
 
@@ -77,7 +75,8 @@ class HeavyTop(AbstractScene, exact_flows.AbstractSplitScene):
 
     It splits (`splitting()`) into the gravity kick Π ↦ Π + hΓ × ℓ (the
     flow of the potential ℓ·Γ: the attitude stands still) and the three
-    axis terms of the kinetic energy, in that order (the kick outermost).
+    axis terms of the kinetic energy, in that order (the kick outermost, then
+    the axes by increasing inertia, `exact_flows.InertiaOrderedFrame`).
     Each part keeps Γ·Π, so the splitting keeps it to round-off."""
 
     bundle: AbstractBundle = eqx.field(default_factory=lambda: Cotangent(SO3))
@@ -114,14 +113,17 @@ class HeavyTop(AbstractScene, exact_flows.AbstractSplitScene):
 
     def exact_flows(self, args: TopParameters):
         moments = exact_flows.principal_moments(args.inertia, "HeavyTop", batched=True)
-        kick = exact_flows.MomentumKick((9, 10, 11), gravity_torque(jnp.asarray(args.lever)))
-        return (kick,) + exact_flows.axis_rotations(HEAVY_TOP_AXES, moments, momentum_row=9, matrix_rows=(0,))
+        frame = exact_flows.InertiaOrderedFrame.of(moments)
+        kick = exact_flows.MomentumKick((9, 10, 11), gravity_torque(frame, jnp.asarray(args.lever)))
+        return (kick,) + exact_flows.axis_rotations(frame, moments, momentum_row=9, matrix_rows=(0,))
 
-    def pack(self, y):
-        return exact_flows.packed_rotation_and_vector(y)
+    def pack(self, y, args: TopParameters):
+        frame = exact_flows.InertiaOrderedFrame.of(exact_flows.principal_moments(args.inertia, "HeavyTop", batched=True))
+        return frame.relabel(exact_flows.packed_rotation_and_vector(y), (0,), (9,))
 
-    def unpack(self, z, like):
-        return exact_flows.unpacked_rotation_and_vector(z, like)
+    def unpack(self, z, like, args: TopParameters):
+        frame = exact_flows.InertiaOrderedFrame.of(exact_flows.principal_moments(args.inertia, "HeavyTop", batched=True))
+        return exact_flows.unpacked_rotation_and_vector(frame.restore(z, (0,), (9,)), like)
 
 
 class SphericalTop(AbstractScene):

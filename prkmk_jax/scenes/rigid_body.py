@@ -206,11 +206,6 @@ def elliptic_momentum(pi0, inertia, t) -> np.ndarray:
     return out
 
 
-FREE_BODY_AXES = (0, 1, 2)
-"""The order of the free body's axis terms in its splitting, outermost first
-(the last one takes the full step)."""
-
-
 class FreeRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
     """The unreduced free rigid body g' = gΩ, Π' = Π × Ω on T*SO(3), body form.
 
@@ -221,7 +216,8 @@ class FreeRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
     frame (Ω = I⁻¹Π).
 
     It splits (`splitting()`) into the three axis terms ½Πᵢ²/Iᵢ of its
-    energy, each a rotation about a body axis (principal moments only)."""
+    energy, each a rotation about a body axis (principal moments only), the
+    axis of smallest inertia outermost (`exact_flows.InertiaOrderedFrame`)."""
 
     bundle: AbstractBundle = eqx.field(default_factory=lambda: Cotangent(SO3))
     form: Literal["space", "body"] = eqx.field(default="body", static=True)
@@ -259,13 +255,15 @@ class FreeRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
 
     def exact_flows(self, inertia):
         moments = exact_flows.principal_moments(inertia, "FreeRigidBody")
-        return exact_flows.axis_rotations(FREE_BODY_AXES, moments, momentum_row=9, matrix_rows=(0,))
+        return exact_flows.axis_rotations(exact_flows.InertiaOrderedFrame.of(moments), moments, momentum_row=9, matrix_rows=(0,))
 
-    def pack(self, y):
-        return exact_flows.packed_rotation_and_vector(y)
+    def pack(self, y, inertia):
+        frame = exact_flows.InertiaOrderedFrame.of(exact_flows.principal_moments(inertia, "FreeRigidBody"))
+        return frame.relabel(exact_flows.packed_rotation_and_vector(y), (0,), (9,))
 
-    def unpack(self, z, like):
-        return exact_flows.unpacked_rotation_and_vector(z, like)
+    def unpack(self, z, like, inertia):
+        frame = exact_flows.InertiaOrderedFrame.of(exact_flows.principal_moments(inertia, "FreeRigidBody"))
+        return exact_flows.unpacked_rotation_and_vector(frame.restore(z, (0,), (9,)), like)
 
 
 class SymmetricRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
@@ -319,25 +317,30 @@ class SymmetricRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
         if self.bundle.base is not SO3:
             raise ValueError("SymmetricRigidBody splits on Cartesian(SO3) only; on SO(n) use a PRKMK method.")
         moments = exact_flows.principal_moments(inertia, "SymmetricRigidBody", batched=True)
+        ordered = exact_flows.InertiaOrderedFrame.of(moments).vector(moments)
 
         def rate(axis):
-            # Mᵢ = Aₖⱼ − Aⱼₖ with A = QᵀP, Aₐᵦ = Σᵣ Q_rₐ P_rᵦ, (i, j, k) cyclic.
+            # Mᵢ = Aₖⱼ − Aⱼₖ with A = QᵀP, Aₐᵦ = Σᵣ Q_rₐ P_rᵦ, (i, j, k) cyclic. In
+            # the relabelled frame this gives the parity times Mᵢ: the turn the
+            # left-handed frame needs (`InertiaOrderedFrame`).
             j, k = (axis + 1) % 3, (axis + 2) % 3
 
             def entry(z, a, b):
                 return sum(z[3 * r + a] * z[9 + 3 * r + b] for r in range(3))
 
-            return lambda z, args: (entry(z, k, j) - entry(z, j, k)) / moments[..., axis]
+            return lambda z, args: (entry(z, k, j) - entry(z, j, k)) / ordered[..., axis]
 
-        pairs = [exact_flows.column_pairs(axis, 0) + exact_flows.column_pairs(axis, 9) for axis in FREE_BODY_AXES]
-        return tuple(exact_flows.AxisRotation(axis, pair, rate(axis)) for axis, pair in zip(FREE_BODY_AXES, pairs))
+        pairs = [exact_flows.column_pairs(axis, 0) + exact_flows.column_pairs(axis, 9) for axis in range(3)]
+        return tuple(exact_flows.AxisRotation(axis, pair, rate(axis)) for axis, pair in zip(range(3), pairs))
 
-    def pack(self, y):
+    def pack(self, y, inertia):
         q, p = rotation_matrix(y.base), rotation_matrix(y.fiber)
         flat = jnp.concatenate([q.reshape(*q.shape[:-2], 9), p.reshape(*p.shape[:-2], 9)], axis=-1)
-        return jnp.moveaxis(flat, -1, 0)
+        frame = exact_flows.InertiaOrderedFrame.of(exact_flows.principal_moments(inertia, "SymmetricRigidBody", batched=True))
+        return frame.relabel(jnp.moveaxis(flat, -1, 0), (0, 9), ())
 
-    def unpack(self, z, like):
-        flat = jnp.moveaxis(z, 0, -1)
+    def unpack(self, z, like, inertia):
+        frame = exact_flows.InertiaOrderedFrame.of(exact_flows.principal_moments(inertia, "SymmetricRigidBody", batched=True))
+        flat = jnp.moveaxis(frame.restore(z, (0, 9), ()), 0, -1)
         batch = flat.shape[:-1]
         return BundleElement(SO3(flat[..., :9].reshape(*batch, 3, 3)), SO3(flat[..., 9:].reshape(*batch, 3, 3)))
