@@ -271,6 +271,7 @@ def machine():
         cpus=os.cpu_count(),
         jax=jax.__version__,
         devices=[str(d) for d in jax.devices()],
+        device_kind=jax.devices()[0].device_kind,
     )
 
 

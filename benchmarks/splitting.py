@@ -21,6 +21,7 @@ excluded). Writes splitting.json and splitting.md (the table) to --out.
 
     python benchmarks/splitting.py --out benchmarks/results
     python benchmarks/splitting.py --quick
+    python benchmarks/splitting.py --short --regimes 1024,16384 --name splitting_gpu   # on a GPU
 """
 
 import json
@@ -82,8 +83,9 @@ def _floor_kernel(scene_name, args, fractions):
     return step
 
 
-def _runners(scene_name, n, floor_fractions=pk.kahan_li_8.fractions):
+def _runners(scene_name, n, floor_fractions=pk.kahan_li_8.fractions, dtype=jnp.float64):
     scene, args = SCENES[scene_name]
+    args = jax.tree.map(lambda a: jnp.asarray(a, dtype), args)
     h = T_END / n
 
     def library(method):
@@ -151,31 +153,39 @@ def _reference(scene_name, z0s):
     return np.stack(out)
 
 
-def run(regime, scene_name, quick, rounds):
+SHORT_SWEEPS = {  # --short: the library's order 8 and Dopri8, around the step counts that reach the targets
+    "splitting order 8": [32, 48, 64, 96, 128],
+    "Dopri8 fixed": [50, 70, 100, 140, 200],
+}
+
+
+def run(regime, scene_name, quick, rounds, short=False, dtype=jnp.float64):
     batch = None if regime == "single" else int(regime)
     q0, p0 = C.initial_conditions(batch, seed=1)
     if scene_name == "heavy top":
         p0 = np.asarray(p0) * np.array([1.0, -1.0, 2.0])
-    q, p = jnp.asarray(q0), jnp.asarray(p0)
+    q, p = jnp.asarray(q0, dtype), jnp.asarray(p0, dtype)
     z0 = np.concatenate([np.asarray(q0).reshape(-1, 9), np.asarray(p0).reshape(-1, 3)], axis=-1)
     checked = z0[: (1 if batch is None else 32)]
     reference = _reference(scene_name, checked)
     rows = []
     chosen = {}
-    for method in SWEEPS:
+    for method in SHORT_SWEEPS if short else SWEEPS:
         if quick and method in QUICK_SKIPS:
             continue
-        sweep = SWEEPS[method][:1] if quick else SWEEPS[method]
+        sweep = SWEEPS[method][:1] if quick else (SHORT_SWEEPS if short else SWEEPS)[method]
         for n in sweep:
             # --quick: every code path once; the floor composes Suzuki's 5 steps (quicker to compile).
             fractions = pk.suzuki_5.fractions if quick else pk.kahan_li_8.fractions
-            fn = jax.jit(_runners(scene_name, n, fractions)[method])
+            fn = jax.jit(_runners(scene_name, n, fractions, dtype)[method])
             start = time.perf_counter()
             compiled = fn.lower(q, p).compile()
             compile_s = time.perf_counter() - start
             z = np.asarray(compiled(q, p)).reshape(-1, 12)[: len(checked)]
             error = float(np.max(np.abs(z - reference)))
-            rows.append(dict(regime=regime, scene=scene_name, method=method, steps=n, error=error, compile_s=compile_s))
+            rows.append(
+                dict(regime=regime, scene=scene_name, method=method, steps=n, error=error, compile_s=compile_s, dtype=jnp.dtype(dtype).name)
+            )
             print(f"{scene_name:9s} {regime:6s} {method:30s} n={n:5d} error {error:8.1e} compile {compile_s:5.1f} s", flush=True)
             for target in TARGETS:
                 if error <= target and (method, target) not in chosen:
@@ -301,18 +311,26 @@ class _Reordered(pk.exact_flows.AbstractSplitScene):
         return self.scene.unpack(z, like, args)
 
 
+def _arguments(parser):
+    parser.add_argument("--regimes", default="single,1024", help="comma-separated: single, or a batch size")
+    parser.add_argument("--short", action="store_true", help="the order-8 splittings and Dopri8 only, near the targets (device runs)")
+    parser.add_argument("--float32", action="store_true", help="states and parameters in float32")
+    parser.add_argument("--name", default="splitting", help="stem of the results files")
+
+
 def main(argv=None):
-    args, out = C.cli(__doc__, argv, lambda p: p.add_argument("--regimes", default="single,1024"))
+    args, out = C.cli(__doc__, argv, _arguments)
     if args.quick:
         args.regimes = "single,4"
+    dtype = jnp.float32 if args.float32 else jnp.float64
     rows = []
     for scene_name in list(SCENES)[:1] if args.quick else SCENES:
         for regime in args.regimes.split(","):
-            rows += run(regime, scene_name, args.quick, rounds=3 if args.quick else 7)
-    arranged = arrangements(args.quick)
-    with open(out / "splitting.json", "w") as f:
+            rows += run(regime, scene_name, args.quick, rounds=3 if args.quick else 7, short=args.short, dtype=dtype)
+    arranged = [] if args.short else arrangements(args.quick)
+    with open(out / f"{args.name}.json", "w") as f:
         json.dump(dict(machine=C.machine(), t_end=T_END, rows=rows, arrangements=arranged), f, indent=1)
-    (out / "splitting.md").write_text(table(rows))
+    (out / f"{args.name}.md").write_text(table(rows))
     print(table(rows))
 
 

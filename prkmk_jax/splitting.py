@@ -79,8 +79,10 @@ class Splitting(AbstractMethod):
     `PRKMKSolver` refuse another vector field. For batches, give the
     trajectories as leading axes of the state (one run of all of them): the
     step packs the state with its components first, the layout XLA
-    vectorises; under `jax.vmap` the batch axis comes first and each
-    component is read with a stride (slower, same values).
+    vectorises, and from `exact_flows.VECTORISED_BATCH` trajectories on it
+    evaluates its sines by `sincos`. Under `jax.vmap` the step sees one
+    trajectory and the batch axis comes first: same values, slower at large
+    batches (`benchmarks/splitting.py`).
     """
 
     scene: AbstractSplitScene
