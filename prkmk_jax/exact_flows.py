@@ -242,6 +242,17 @@ def axis_rotations(frame: InertiaOrderedFrame, moments: Array, momentum_row: int
     return tuple(rotation(axis) for axis in range(3))
 
 
+def packed_body_state(y: BundleElement, moments: Array) -> Packed:
+    """A state (Q, Π) on T*SO(3) packed components-first in the frame of the
+    axes ordered by `moments` (`InertiaOrderedFrame`)."""
+    return InertiaOrderedFrame.of(moments).relabel(packed_rotation_and_vector(y), (0,), (9,))
+
+
+def unpacked_body_state(z: Packed, like: BundleElement, moments: Array) -> BundleElement:
+    """Inverse of `packed_body_state`."""
+    return unpacked_rotation_and_vector(InertiaOrderedFrame.of(moments).restore(z, (0,), (9,)), like)
+
+
 def column_pairs(axis: int, first_row: int = 0) -> tuple[tuple[int, int], ...]:
     """The row pairs of a row-major 3×3 matrix packed from `first_row` whose
     columns (j, k) = (axis + 1, axis + 2) mod 3 turn under M ↦ M·Rₐₓᵢₛ."""

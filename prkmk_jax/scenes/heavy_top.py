@@ -118,12 +118,10 @@ class HeavyTop(AbstractScene, exact_flows.AbstractSplitScene):
         return (kick,) + exact_flows.axis_rotations(frame, moments, momentum_row=9, matrix_rows=(0,))
 
     def pack(self, y, args: TopParameters):
-        frame = exact_flows.InertiaOrderedFrame.of(exact_flows.principal_moments(args.inertia, "HeavyTop", batched=True))
-        return frame.relabel(exact_flows.packed_rotation_and_vector(y), (0,), (9,))
+        return exact_flows.packed_body_state(y, exact_flows.principal_moments(args.inertia, "HeavyTop", batched=True))
 
     def unpack(self, z, like, args: TopParameters):
-        frame = exact_flows.InertiaOrderedFrame.of(exact_flows.principal_moments(args.inertia, "HeavyTop", batched=True))
-        return exact_flows.unpacked_rotation_and_vector(frame.restore(z, (0,), (9,)), like)
+        return exact_flows.unpacked_body_state(z, like, exact_flows.principal_moments(args.inertia, "HeavyTop", batched=True))
 
 
 class SphericalTop(AbstractScene):

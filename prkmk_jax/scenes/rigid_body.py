@@ -258,12 +258,10 @@ class FreeRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
         return exact_flows.axis_rotations(exact_flows.InertiaOrderedFrame.of(moments), moments, momentum_row=9, matrix_rows=(0,))
 
     def pack(self, y, inertia):
-        frame = exact_flows.InertiaOrderedFrame.of(exact_flows.principal_moments(inertia, "FreeRigidBody"))
-        return frame.relabel(exact_flows.packed_rotation_and_vector(y), (0,), (9,))
+        return exact_flows.packed_body_state(y, exact_flows.principal_moments(inertia, "FreeRigidBody"))
 
     def unpack(self, z, like, inertia):
-        frame = exact_flows.InertiaOrderedFrame.of(exact_flows.principal_moments(inertia, "FreeRigidBody"))
-        return exact_flows.unpacked_rotation_and_vector(frame.restore(z, (0,), (9,)), like)
+        return exact_flows.unpacked_body_state(z, like, exact_flows.principal_moments(inertia, "FreeRigidBody"))
 
 
 class SymmetricRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
