@@ -56,14 +56,14 @@ class Adjoint(AbstractMadeOfSteps):
     """The adjoint Φ*_h = (Φ_{−h})⁻¹ of a PRKMK method Φ, or of a `Splitting`
     (symmetric: its adjoint is itself, and its steps are taken as they are).
 
-        Φ*_h(yₙ) is the y with Φ_{−h}(y) = yₙ: the method's stages centred at
-        the step's end. With U_i = −h(Σⱼ a¹ᵢⱼKⱼ, Σⱼ a²ᵢⱼLⱼ), W = h(Σⱼ b¹ⱼKⱼ, Σⱼ b²ⱼLⱼ),
-        yₙ₊₁ = f(W)·yₙ (space form; yₙ·f(W) in body form) and stage points
-        Y_i = f(U_i)·yₙ₊₁, the slopes solve (K_i, L_i) = df⁻¹_{U_i}(X(tₙ₊₁ − c_i h,
-        Y_i)) — one implicit system for all stages (yₙ₊₁ depends on every slope),
-        solved by the method's root finder. Then f(−W)·yₙ₊₁ = yₙ is the reversed
-        step, since f(−W) = f(W)⁻¹ for both coordinate maps. In a vector space
-        this is the PRK method of the adjoint tableau.
+    Φ*_h(yₙ) is the y with Φ_{−h}(y) = yₙ: the method's stages centred at
+    the step's end. With U_i = −h(Σⱼ a¹ᵢⱼKⱼ, Σⱼ a²ᵢⱼLⱼ), W = h(Σⱼ b¹ⱼKⱼ, Σⱼ b²ⱼLⱼ),
+    yₙ₊₁ = f(W)·yₙ (space form; yₙ·f(W) in body form) and stage points
+    Y_i = f(U_i)·yₙ₊₁, the slopes solve (K_i, L_i) = df⁻¹_{U_i}(X(tₙ₊₁ − c_i h,
+    Y_i)) — one implicit system for all stages (yₙ₊₁ depends on every slope),
+    solved by the method's root finder. Then f(−W)·yₙ₊₁ = yₙ is the reversed
+    step, since f(−W) = f(W)⁻¹ for both coordinate maps. In a vector space
+    this is the PRK method of the adjoint tableau.
     """
 
     method: PRKMK | Splitting  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a field narrows an AbstractVar's type

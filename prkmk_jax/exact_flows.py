@@ -42,18 +42,18 @@ VECTORISED_BATCH = 16
 """From this many trajectories in the state on, rotations take their sines
 from `sincos` and `Splitting` computes each sub-step once (a barrier to
 XLA's fusion). Below it the step is one fused program with XLA's own sine
-and cosine, which for a few trajectories runs faster and compiles sooner
-(`benchmarks/splitting.py`, `--layouts`). Under `jax.vmap` the state a step
-sees is one trajectory, so the vmapped step takes this path too."""
+and cosine, which for a few trajectories runs faster and compiles sooner.
+Under `jax.vmap` the state a step sees is one trajectory, so the vmapped
+step takes this path too."""
 
 Packed = Float[Array, "d *batch"]
 """A state packed with its components first: one row per entry (for T*SO(3):
 Q row-major, then Π), any batch axes after."""
 
 
-def is_vectorised(z: Packed) -> bool:
-    """Whether the state holds at least `VECTORISED_BATCH` trajectories."""
-    return math.prod(z.shape[1:]) >= VECTORISED_BATCH
+def is_vectorised(batch_shape: tuple[int, ...]) -> bool:
+    """Whether arrays of this batch shape hold at least `VECTORISED_BATCH` trajectories."""
+    return math.prod(batch_shape) >= VECTORISED_BATCH
 
 
 def rotation_sine_cosine(coordinates: AbstractCoordinates, angle: Array) -> tuple[Array, Array]:
@@ -64,7 +64,7 @@ def rotation_sine_cosine(coordinates: AbstractCoordinates, angle: Array) -> tupl
         quarter = 0.25 * angle * angle
         scale = 1.0 / (1.0 + quarter)
         return angle * scale, (1.0 - quarter) * scale
-    if math.prod(jnp.shape(angle)) >= VECTORISED_BATCH:
+    if is_vectorised(jnp.shape(angle)):
         return sincos(angle)
     return jnp.sin(angle), jnp.cos(angle)
 

@@ -142,7 +142,7 @@ class Splitting(AbstractMethod):
         z = self.scene.pack(y, args)
         for part, start, step in sub_steps(len(flows), fractions, merge=isinstance(self.coordinates, Exp)):
             z = flows[part].flow(self.coordinates, t + start * dt, z, step * dt, args)
-            if is_vectorised(z) or flows[part].always_materialised:
+            if is_vectorised(z.shape[1:]) or flows[part].always_materialised:
                 # Each sub-step's state is computed once: XLA would otherwise
                 # fuse the chain of cheap rotations (`sincos` is arithmetic) into
                 # its consumers and recompute every earlier one inside each
