@@ -24,7 +24,10 @@ excluded). Writes splitting.json and splitting.md (the table) to --out.
     python benchmarks/splitting.py --short --regimes 1024,16384 --name splitting_gpu   # on a GPU
 """
 
+import concurrent.futures
+import functools
 import json
+import os
 import statistics
 import time
 
@@ -32,6 +35,7 @@ import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
+import write_tables
 from scipy.integrate import solve_ivp
 
 import _common as C
@@ -41,6 +45,7 @@ from prkmk_jax.scenes import FreeRigidBody, HeavyTop, TopParameters
 
 T_END = 10.0
 TARGETS = (1e-6, 1e-8, 1e-10)
+TARGETS_FLOAT32 = (1e-4, 1e-5, 1e-6)
 TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
 SCENES = {"free body": (FreeRigidBody(), jnp.asarray(C.INERTIA)), "heavy top": (HeavyTop(), TOP_ARGS)}
 
@@ -101,17 +106,17 @@ def _runners(scene_name, n, floor_fractions=pk.kahan_li_8.fractions, dtype=jnp.f
         z = jax.lax.fori_loop(0, n, lambda i, z: step(z, h), z)
         return jnp.moveaxis(z, 0, -1)
 
-    def dopri8(q, p):
+    def fixed_step(solver):
+        """diffrax with constant steps on the embedding ℝ⁹×ℝ³, vmapped."""
+
         def one(q, p):
-            z0 = jnp.concatenate([q.reshape(9), p])
-            term = diffrax.ODETerm(scene.embedding_field)
             sol = diffrax.diffeqsolve(
-                term,
-                diffrax.Dopri8(),
+                diffrax.ODETerm(scene.embedding_field),
+                solver,
                 0.0,
                 T_END,
                 h,
-                z0,
+                jnp.concatenate([q.reshape(9), p]),
                 args,
                 saveat=diffrax.SaveAt(t1=True),
                 stepsize_controller=diffrax.ConstantStepSize(),
@@ -119,14 +124,16 @@ def _runners(scene_name, n, floor_fractions=pk.kahan_li_8.fractions, dtype=jnp.f
             )
             return sol.ys[-1]
 
-        return jax.vmap(one)(q, p) if q.ndim == 3 else one(q, p)
+        return lambda q, p: jax.vmap(one)(q, p) if q.ndim == 3 else one(q, p)
 
     out = {
         f"splitting {name}": library(scene.splitting(c))
         for name, c in (("Strang", None), ("order 4", pk.suzuki_5), ("order 6", pk.kahan_li_6), ("order 8", pk.kahan_li_8))
     }
+    out["PRKMK Lobatto 6"] = library(scene.method(pk.lobatto_iiia_iiib6))
     out["floor order 8 (hand-written)"] = floor
-    out["Dopri8 fixed"] = dopri8
+    out["Dopri8 fixed"] = fixed_step(diffrax.Dopri8())
+    out["Tsit5 fixed"] = fixed_step(diffrax.Tsit5())
     return out
 
 
@@ -134,32 +141,65 @@ SWEEPS = {
     "splitting Strang": [400, 1600, 6400],
     "splitting order 4": [50, 100, 200, 400, 800],
     "splitting order 6": [30, 45, 70, 100, 150, 220],
-    "splitting order 8": [20, 24, 28, 32, 40, 48, 56, 64, 80, 96, 128],
-    "floor order 8 (hand-written)": [20, 24, 28, 32, 40, 48, 56, 64, 80, 96, 128],
-    "Dopri8 fixed": [35, 42, 50, 60, 70, 85, 100, 120, 140, 170, 200],
+    "splitting order 8": [16, 20, 24, 28, 32, 40, 48, 56, 64, 80, 96, 128, 160],
+    "PRKMK Lobatto 6": [40, 60, 90, 140, 200, 300, 450],
+    "floor order 8 (hand-written)": [16, 20, 24, 28, 32, 40, 48, 56, 64, 80, 96, 128, 160],
+    "Dopri8 fixed": [25, 35, 42, 50, 60, 70, 85, 100, 120, 140, 170, 200, 250],
+    "Tsit5 fixed": [100, 160, 250, 400, 630, 1000, 1600, 2500],
 }
 
 
 QUICK_SKIPS = ("splitting order 6", "splitting order 8")
 
 
-def _reference(scene_name, z0s):
+@functools.cache
+def _reference_one(scene_name, z0):
     scene, args = SCENES[scene_name]
-    field = jax.jit(scene.embedding_field)
-    out = []
-    for z0 in z0s:
-        sol = solve_ivp(lambda t, z: np.asarray(field(t, jnp.asarray(z), args)), (0.0, T_END), z0, method="DOP853", rtol=1e-13, atol=1e-13)
-        out.append(sol.y[:, -1])
-    return np.stack(out)
+    cpu = jax.devices("cpu")[0]  # SciPy calls the field once per stage: one small program on the host
+    field = jax.jit(scene.embedding_field)  # runs where its arguments are
+    args = jax.device_put(args, cpu)
+    rhs = lambda t, z: np.asarray(field(t, jax.device_put(z, cpu), args))  # noqa: E731
+    sol = solve_ivp(rhs, (0.0, T_END), np.asarray(z0), method="DOP853", rtol=1e-13, atol=1e-13)
+    return sol.y[:, -1]
 
 
-SHORT_SWEEPS = {  # --short: the library's order 8 and Dopri8, around the step counts that reach the targets
+def _reference(scene_name, z0s):
+    """SciPy DOP853 at rtol = atol = 1e-13, for each initial state (kept between regimes)."""
+    return np.stack([_reference_one(scene_name, tuple(float(v) for v in z0)) for z0 in z0s])
+
+
+SHORT_SWEEPS = {  # --short: the order-8 splittings and the peers, around the step counts that reach the targets
     "splitting order 8": [32, 48, 64, 96, 128],
+    "floor order 8 (hand-written)": [32, 48, 64, 96, 128],
     "Dopri8 fixed": [50, 70, 100, 140, 200],
+    "Tsit5 fixed": [250, 400, 630, 1000, 1600, 2500],
+}
+SHORT_SWEEPS_FLOAT32 = {  # --short --float32: around the float32 targets
+    "splitting order 8": [16, 24, 32, 48],
+    "floor order 8 (hand-written)": [16, 24, 32, 48],
+    "Dopri8 fixed": [25, 35, 50, 70],
+    "Tsit5 fixed": [100, 160, 250, 400],
 }
 
 
-def run(regime, scene_name, quick, rounds, short=False, dtype=jnp.float64):
+def _compiled(lowered, parallel):
+    """{key: (compiled, compile seconds)}; with `parallel`, compiled on
+    threads (XLA compiles outside the GIL) and the seconds left out: they
+    overlap."""
+    if not parallel:
+        out = {}
+        for key, lower in lowered.items():
+            start = time.perf_counter()
+            compiled = lower().compile()
+            out[key] = (compiled, time.perf_counter() - start)
+        return out
+    with concurrent.futures.ThreadPoolExecutor(max_workers=os.cpu_count()) as pool:
+        futures = {key: pool.submit(lambda lower: lower().compile(), lower) for key, lower in lowered.items()}
+        return {key: (future.result(), None) for key, future in futures.items()}
+
+
+def run(regime, scene_name, quick, rounds, short=False, dtype=jnp.float64, parallel_compile=False, without=()):
+    targets = TARGETS if dtype == jnp.float64 else TARGETS_FLOAT32
     batch = None if regime == "single" else int(regime)
     q0, p0 = C.initial_conditions(batch, seed=1)
     if scene_name == "heavy top":
@@ -170,27 +210,37 @@ def run(regime, scene_name, quick, rounds, short=False, dtype=jnp.float64):
     reference = _reference(scene_name, checked)
     rows = []
     chosen = {}
-    for method in SHORT_SWEEPS if short else SWEEPS:
-        if quick and method in QUICK_SKIPS:
-            continue
-        sweep = SWEEPS[method][:1] if quick else (SHORT_SWEEPS if short else SWEEPS)[method]
-        for n in sweep:
-            # --quick: every code path once; the floor composes Suzuki's 5 steps (quicker to compile).
-            fractions = pk.suzuki_5.fractions if quick else pk.kahan_li_8.fractions
-            fn = jax.jit(_runners(scene_name, n, fractions, dtype)[method])
-            start = time.perf_counter()
-            compiled = fn.lower(q, p).compile()
-            compile_s = time.perf_counter() - start
-            z = np.asarray(compiled(q, p)).reshape(-1, 12)[: len(checked)]
-            error = float(np.max(np.abs(z - reference)))
-            rows.append(
-                dict(regime=regime, scene=scene_name, method=method, steps=n, error=error, compile_s=compile_s, dtype=jnp.dtype(dtype).name)
+    sweeps = SWEEPS if not short else SHORT_SWEEPS if dtype == jnp.float64 else SHORT_SWEEPS_FLOAT32
+    # --quick: every code path once; the floor composes Suzuki's 5 steps (quicker to compile).
+    fractions = pk.suzuki_5.fractions if quick else pk.kahan_li_8.fractions
+    lowered = {
+        (method, n): functools.partial(jax.jit(_runners(scene_name, n, fractions, dtype)[method]).lower, q, p)
+        for method, sweep in sweeps.items()
+        if not (quick and method in QUICK_SKIPS) and method not in without
+        for n in (sweep[:1] if quick else sweep)
+    }
+    for (method, n), (compiled, compile_s) in _compiled(lowered, parallel_compile).items():
+        z = np.asarray(compiled(q, p)).reshape(-1, 12)[: len(checked)]
+        error = float(np.max(np.abs(z - reference)))
+        wall_s, _ = C.median_time(compiled, q, p, repeats=3)  # the chart's point; the table times the picks interleaved
+        rows.append(
+            dict(
+                regime=regime,
+                scene=scene_name,
+                method=method,
+                steps=n,
+                error=error,
+                wall_s=wall_s,
+                compile_s=compile_s,
+                dtype=jnp.dtype(dtype).name,
             )
-            print(f"{scene_name:9s} {regime:6s} {method:30s} n={n:5d} error {error:8.1e} compile {compile_s:5.1f} s", flush=True)
-            for target in TARGETS:
-                if error <= target and (method, target) not in chosen:
-                    chosen[(method, target)] = (n, compiled, rows[-1])
-    for target in TARGETS:
+        )
+        compiling = "" if compile_s is None else f" compile {compile_s:5.1f} s"
+        print(f"{scene_name:9s} {regime:6s} {method:30s} n={n:5d} error {error:8.1e} {wall_s * 1e3:9.2f} ms{compiling}", flush=True)
+        for target in targets:
+            if error <= target and (method, target) not in chosen:
+                chosen[(method, target)] = (n, compiled, rows[-1])
+    for target in targets:
         picks = {m: v for (m, t), v in chosen.items() if t == target}
         if not picks:
             continue
@@ -205,42 +255,33 @@ def run(regime, scene_name, quick, rounds, short=False, dtype=jnp.float64):
     return rows
 
 
-def table(rows):
-    """Markdown, one row per scene, regime and target: the fastest library
-    splitting, the hand-written floor and Dopri8 at that target, and the
-    library's time over each."""
-    lines = [
-        "| scene | regime | target | library splitting | ms | floor (hand-written) | ms | Dopri8 fixed | ms "
-        "| library / floor | library / Dopri8 |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    keys = sorted({(r["scene"], r["regime"]) for r in rows}, key=lambda k: (k[0], k[1] != "single", k[1]))
-    for scene, regime in keys:
-        for target in TARGETS:
-            label = f"{target:.0e}"
-            timed = [
-                (r["method"], r["steps"], r["wall_s_at_target"][label])
-                for r in rows
-                if r["scene"] == scene and r["regime"] == regime and label in r.get("wall_s_at_target", {})
-            ]
+def plot(rows, path, targets):
+    """Error at T against wall time, one panel per scene and regime, one
+    curve per method through its step counts (each point the median of
+    three runs, not interleaved: the tables' times are the interleaved ones)."""
+    import matplotlib
 
-            def best(prefix):
-                found = [t for t in timed if t[0].startswith(prefix)]
-                return min(found, key=lambda t: t[2]) if found else None
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
 
-            library, floor, dopri8 = best("splitting"), best("floor"), best("Dopri8")
-
-            def cell(entry, name=True):
-                if entry is None:
-                    return "not reached | –"
-                return (f"{entry[0]} (n = {entry[1]})" if name else f"n = {entry[1]}") + f" | {entry[2] * 1e3:.2f}"
-
-            def ratio(other):
-                return "–" if library is None or other is None else f"{library[2] / other[2]:.2f}"
-
-            peers = f"{cell(floor, False)} | {cell(dopri8, False)} | {ratio(floor)} | {ratio(dopri8)}"
-            lines.append(f"| {scene} | {regime} | {label} | {cell(library)} | {peers} |")
-    return "\n".join(lines) + "\n"
+    panels = sorted({(r["scene"], r["regime"]) for r in rows}, key=lambda k: (k[0], k[1] != "single", k[1]))
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.5), squeeze=False)
+    for ax, (scene, regime) in zip(axes[0], panels):
+        for method in dict.fromkeys(r["method"] for r in rows):
+            runs = sorted((r for r in rows if (r["scene"], r["regime"], r["method"]) == (scene, regime, method)), key=lambda r: r["steps"])
+            if runs:  # in order of step count: a timing's noise shows as a step back
+                style = "-o" if method.startswith(("splitting", "PRKMK")) else ("-.v" if method.startswith("floor") else "--s")
+                ax.loglog([r["wall_s"] for r in runs], [max(r["error"], 1e-17) for r in runs], style, ms=3, label=method)
+        for target in targets:
+            ax.axhline(target, color="0.8", lw=0.8)
+        ax.set_title(f"{scene}, {'one trajectory' if regime == 'single' else f'batch {regime}'}")
+        ax.set_xlabel("wall time after compilation (s)")
+        ax.set_ylabel(f"max error at T = {T_END:g}")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def arrangements(quick):
@@ -291,6 +332,10 @@ class _Reordered(pk.exact_flows.AbstractSplitScene):
     parts: tuple
 
     @property
+    def rotation_rows(self):  # pyright: ignore[reportIncompatibleVariableOverride]
+        return self.scene.rotation_rows
+
+    @property
     def bundle(self):
         return self.scene.bundle
 
@@ -316,6 +361,8 @@ def _arguments(parser):
     parser.add_argument("--short", action="store_true", help="the order-8 splittings and Dopri8 only, near the targets (device runs)")
     parser.add_argument("--float32", action="store_true", help="states and parameters in float32")
     parser.add_argument("--name", default="splitting", help="stem of the results files")
+    parser.add_argument("--without", default="", help="comma-separated methods to leave out (e.g. 'Tsit5 fixed')")
+    parser.add_argument("--parallel-compile", action="store_true", help="compile each sweep on threads (compile times not recorded)")
 
 
 def main(argv=None):
@@ -324,14 +371,30 @@ def main(argv=None):
         args.regimes = "single,4"
     dtype = jnp.float32 if args.float32 else jnp.float64
     rows = []
+    targets = TARGETS if dtype == jnp.float64 else TARGETS_FLOAT32
+
+    def write(arranged):
+        with open(out / f"{args.name}.json", "w") as f:
+            json.dump(dict(machine=C.machine(), t_end=T_END, targets=targets, rows=rows, arrangements=arranged), f, indent=1)
+
     for scene_name in list(SCENES)[:1] if args.quick else SCENES:
         for regime in args.regimes.split(","):
-            rows += run(regime, scene_name, args.quick, rounds=3 if args.quick else 7, short=args.short, dtype=dtype)
-    arranged = [] if args.short else arrangements(args.quick)
-    with open(out / f"{args.name}.json", "w") as f:
-        json.dump(dict(machine=C.machine(), t_end=T_END, rows=rows, arrangements=arranged), f, indent=1)
-    (out / f"{args.name}.md").write_text(table(rows))
-    print(table(rows))
+            rows += run(
+                regime,
+                scene_name,
+                args.quick,
+                rounds=3 if args.quick else 7,
+                short=args.short,
+                dtype=dtype,
+                parallel_compile=args.parallel_compile,
+                without=args.without.split(","),
+            )
+            write([])  # what a run cut short has measured so far
+    write([] if args.short else arrangements(args.quick))
+    table = write_tables.accuracy_table(write_tables.entries_of(dict(machine=C.machine(), targets=targets, rows=rows), args.name))
+    (out / f"{args.name}.md").write_text(table + "\n")
+    plot(rows, out / f"{args.name}.png", targets)
+    print(table)
 
 
 if __name__ == "__main__":

@@ -141,6 +141,10 @@ class AbstractSplitScene(eqx.Module):
 
     bundle: eqx.AbstractVar[AbstractBundle]
     form: eqx.AbstractVar[Literal["space", "body"]]
+    rotation_rows: eqx.AbstractClassVar[tuple[int, ...]]
+    """The first row of each 3×3 rotation matrix in the packed state (row-major
+    over nine rows; its columns may be relabelled): what `Splitting` moves back
+    onto SO(3) after each step in low precision (`renormalized_rotations`)."""
 
     @abc.abstractmethod
     def exact_flows(self, args: PyTree, /) -> tuple[AbstractExactFlow, ...]:
@@ -210,6 +214,22 @@ class InertiaOrderedFrame(eqx.Module):
         """Inverse of `relabel`: the relabelling by σ⁻¹."""
         inverse = InertiaOrderedFrame(jnp.argsort(self.order, axis=-1), self.parity)
         return inverse.relabel(z, matrix_rows, vector_rows)
+
+
+def renormalized_rotations(z: Packed, first_rows: tuple[int, ...]) -> Packed:
+    """z with each 3×3 matrix packed row-major from a row in `first_rows`
+    taken one Björck step towards SO(3), Q ↦ Q + ½Q(I − QᵀQ)
+    (`groups._util.bjorck_step`), written on the rows: elementwise over the
+    batch, so it fuses with the step instead of running as batched 3×3
+    products. Relabelling the columns commutes with it."""
+    rows = list(z)
+    for first in first_rows:
+        q = [[rows[first + 3 * r + c] for c in range(3)] for r in range(3)]
+        gram = [[sum(q[k][i] * q[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
+        for r in range(3):
+            for c in range(3):
+                rows[first + 3 * r + c] = 1.5 * q[r][c] - 0.5 * sum(q[r][k] * gram[k][c] for k in range(3))
+    return jnp.stack(rows)
 
 
 def packed_rotation_and_vector(y: BundleElement) -> Packed:

@@ -36,7 +36,7 @@ from jaxtyping import PyTree
 from .bundles import BundleElement
 from .compositions import CompositionCoefficients
 from .coordinates import AbstractCoordinates, Cayley, Exp
-from .exact_flows import AbstractSplitScene, is_vectorised
+from .exact_flows import AbstractSplitScene, is_vectorised, renormalized_rotations
 from .method import LOW_PRECISION_EPS, RESULTS, AbstractMethod, Time, VectorField, flag_nonfinite
 
 
@@ -149,10 +149,10 @@ class Splitting(AbstractMethod):
                 # later one. With XLA's sine, which it computes once, a few
                 # trajectories need no barrier (`exact_flows.VECTORISED_BATCH`).
                 z = jax.lax.optimization_barrier(z)
-        y_next = self.scene.unpack(z, y, args)
         if jnp.finfo(dtype).eps > LOW_PRECISION_EPS:
             # As `AbstractMethod.advance`: the rounding of each rotation is
             # systematic for steady motions and would pull the state off the group.
-            y_next = self.bundle.renormalized(y_next)
+            z = renormalized_rotations(z, self.scene.rotation_rows)
+        y_next = self.scene.unpack(z, y, args)
         field_now = self.generator(vector_field, t, y, args)
         return y_next, self.increment_between(y, y_next), flag_nonfinite(RESULTS.successful, y_next), jnp.array(0, jnp.int32), field_now

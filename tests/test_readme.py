@@ -30,7 +30,9 @@ def test_readme_example_runs():
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT, timeout=300)
 
 
-BENCHMARK_SCRIPTS = [s for s in sorted((ROOT / "benchmarks").glob("*.py")) if not s.name.startswith("_")]
+TABLE_WRITER = ROOT / "benchmarks" / "write_tables.py"
+"""Writes tables from the results; it measures nothing (no --quick)."""
+BENCHMARK_SCRIPTS = [s for s in sorted((ROOT / "benchmarks").glob("*.py")) if not s.name.startswith("_") and s != TABLE_WRITER]
 
 
 def test_benchmark_scripts_are_there():
@@ -42,3 +44,29 @@ def test_benchmark_scripts_are_there():
 @pytest.mark.parametrize("script", BENCHMARK_SCRIPTS, ids=lambda s: s.stem)
 def test_benchmark_script_runs_quick(script, tmp_path):
     subprocess.run([sys.executable, str(script), "--quick", "--out", str(tmp_path)], check=True, cwd=ROOT, timeout=300)
+
+
+def test_generated_tables_agree_with_the_results():
+    """README, benchmarks/README.md, docs/concepts/choosing.md and notebook 05
+    hold the tables that write_tables.py makes from benchmarks/results."""
+    done = subprocess.run([sys.executable, str(TABLE_WRITER), "--check"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stdout + done.stderr
+
+
+def test_the_table_writer_finds_an_edited_table(tmp_path, monkeypatch):
+    """--check fails where a generated block was edited by hand."""
+    sys.path.insert(0, str(TABLE_WRITER.parent))
+    try:
+        import write_tables
+    finally:
+        sys.path.remove(str(TABLE_WRITER.parent))
+    for document in [*write_tables.DOCUMENTS, write_tables.NOTEBOOK]:
+        (tmp_path / document).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / document).write_text((ROOT / document).read_text())
+    monkeypatch.setattr(write_tables, "ROOT", tmp_path)
+    assert write_tables.main(["--check"]) == 0
+    readme = tmp_path / "README.md"
+    readme.write_text(readme.read_text().replace("| free body | 1 |", "| free body | 1 (edited) |", 1))
+    assert write_tables.main(["--check"]) == 1
+    assert write_tables.main([]) == 0
+    assert readme.read_text() == (ROOT / "README.md").read_text()

@@ -153,3 +153,28 @@ def test_symmetric_body_refuses_other_bundles():
 
     with pytest.raises(TypeError, match="SymmetricRigidBody lives on"):
         SymmetricRigidBody(pk.Cotangent(pk.SO3))
+
+
+@pytest.mark.parametrize("bundle", [pk.Cotangent(pk.SO3), pk.DirectProduct(pk.SO3)], ids=["cotangent", "direct product"])
+def test_three_so3_momenta_are_three_vectors_not_a_matrix(bundle):
+    """A batch of exactly three SO(3) states: the fields and the symmetric
+    body's invariants treat the momenta (3, 3) as three vectors, as they do
+    one at a time."""
+    inertia = jnp.asarray(PAPER_INERTIA)
+    qs = jnp.asarray(np.stack([random_rotation(k) for k in range(3)]))
+    momenta = jnp.asarray(PAPER_MOMENTUM) * jnp.array([[1.0], [-0.5], [2.0]])
+    field = rb.unreduced_rigid_body(bundle)
+    together = field(0.0, pk.BundleElement(pk.SO3(qs), momenta), inertia)
+    for k in range(3):
+        alone = field(0.0, pk.BundleElement(pk.SO3(qs[k]), momenta[k]), inertia)
+        np.testing.assert_allclose(together[0][k], momenta[k] / inertia, rtol=1e-15)
+        np.testing.assert_allclose(together[1][k], alone[1], rtol=1e-14, atol=1e-15)
+
+    symmetric = rb.SymmetricRigidBody()
+    states = pk.BundleElement(pk.SO3(qs), pk.SO3(jnp.asarray(np.stack([random_rotation(10 + k) for k in range(3)]))))
+    both = symmetric.invariants(states, inertia)["energy"]
+    generator = symmetric(0.0, states, inertia)
+    for k in range(3):
+        state = jax.tree.map(lambda a: a[k], states)
+        np.testing.assert_allclose(both[k], symmetric.invariants(state, inertia)["energy"], rtol=1e-14)
+        np.testing.assert_allclose(generator[0][k], symmetric(0.0, state, inertia)[0], rtol=1e-14, atol=1e-15)

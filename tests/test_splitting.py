@@ -219,18 +219,26 @@ def test_gradients_through_integrate_and_diffeqsolve_match_finite_differences():
     np.testing.assert_allclose(through_integrate(lever), through_diffeqsolve(lever), rtol=1e-14)
 
 
-def test_a_batch_in_the_state_and_vmap_give_the_single_runs():
-    method = FREE.splitting(pk.kahan_li_6)
-    qs = jnp.asarray(np.stack([random_rotation(k) for k in range(3)]))
-    momenta = MOMENTUM * jnp.array([[1.0], [1.1], [0.9]])
+@pytest.mark.parametrize("batch", [3, pk.exact_flows.VECTORISED_BATCH])
+@pytest.mark.parametrize("name", CASES)
+def test_a_batch_in_the_state_and_vmap_give_the_single_runs(name, batch):
+    """Every scene with a batch in the state (below and at the size where the
+    step turns to `sincos` and a barrier per sub-flow) and under vmap: each
+    trajectory as its own run."""
+    scene, y0, args = CASES[name]
+    method = scene.splitting(pk.suzuki_5)
+    turns = jnp.asarray(np.stack([random_rotation(10 + k) for k in range(batch)]))
+    # The trajectories differ by their initial attitude.
+    ys = jax.tree.map(lambda a: jnp.broadcast_to(a, (batch, *a.shape)), y0)
+    ys = pk.BundleElement(type(y0.base)(turns @ ys.base.matrix), ys.fiber)
 
-    def final(q, p):
-        return pk.integrate(method, FREE, pk.BundleElement(pk.SO3(q), p), 0.0, 0.1, 30, INERTIA, save_every=30).ys
+    def final(y):
+        return pk.integrate(method, scene, y, 0.0, 0.1, 20, args, save_every=20).ys
 
-    batched = jax.jit(final)(qs, momenta)
-    mapped = jax.jit(jax.vmap(final))(qs, momenta)
-    for k in range(3):
-        single = final(qs[k], momenta[k])
+    batched = jax.jit(final)(ys)
+    mapped = jax.jit(jax.vmap(final))(ys)
+    for k in (0, batch - 1):
+        single = final(jax.tree.map(lambda a: a[k], ys))
         assert max_leaf_difference(jax.tree.map(lambda a: a[:, k], batched), single) < 1e-13
         assert max_leaf_difference(jax.tree.map(lambda a: a[k], mapped), single) < 1e-13
 
@@ -246,6 +254,39 @@ def test_float32():
     assert run32.fiber.dtype == jnp.float32
     assert float(pk.diagnostics.orthogonality_defect(run32.base.matrix[-1])) < 1e-6
     assert max_leaf_difference(jax.tree.map(lambda a: a.astype(jnp.float64), run32), run64) < 1e-4
+
+
+def test_renormalized_rotations_is_a_bjorck_step_on_each_matrix():
+    """The row-wise renormalisation against the matrix form (3×3 products),
+    on two perturbed rotations per trajectory; it commutes with relabelling
+    the columns, as the packed states of the splittings have them."""
+    from prkmk_jax.exact_flows import renormalized_rotations
+    from prkmk_jax.groups._util import bjorck_step
+
+    rng = np.random.default_rng(3)
+    matrices = np.stack([[random_rotation(7 * b + k) for k in range(2)] for b in range(5)]) + 1e-3 * rng.standard_normal((5, 2, 3, 3))
+    packed = jnp.asarray(np.moveaxis(matrices.reshape(5, 18), -1, 0))
+    moved = np.moveaxis(np.asarray(renormalized_rotations(packed, (0, 9))), 0, -1).reshape(5, 2, 3, 3)
+    expected = np.asarray(bjorck_step(jnp.asarray(matrices)))
+    np.testing.assert_allclose(moved, expected, rtol=0, atol=1e-15)
+    defect = lambda m: np.max(np.abs(np.swapaxes(m, -1, -2) @ m - np.eye(3)))  # noqa: E731
+    assert defect(moved) < 1e-4 < 1e-3 < defect(matrices)
+    permuted = packed.reshape(2, 3, 3, 5)[:, :, [2, 0, 1]].reshape(18, 5)
+    again = np.asarray(renormalized_rotations(permuted, (0, 9))).reshape(2, 3, 3, 5)[:, :, [1, 2, 0]].reshape(18, 5)
+    np.testing.assert_allclose(again, np.asarray(renormalized_rotations(packed, (0, 9))), rtol=0, atol=1e-15)
+
+
+def test_float32_batch_stays_on_the_group():
+    """float32, a batch large enough for the vectorised step: both rotations
+    of the symmetric body stay orthogonal to float32 round-off."""
+    y0 = CASES["symmetric body"][1]
+    batch = 2 * pk.exact_flows.VECTORISED_BATCH
+    y32 = jax.tree.map(lambda a: jnp.broadcast_to(a.astype(jnp.float32), (batch, *a.shape)), y0)
+    ys = pk.integrate(SYMMETRIC.splitting(pk.suzuki_5), SYMMETRIC, y32, 0.0, 0.05, 400, INERTIA.astype(jnp.float32), save_every=400).ys
+    for rotation in (ys.base.matrix[:, -1], ys.fiber.matrix[:, -1]):
+        assert rotation.dtype == jnp.float32
+        gram = jnp.swapaxes(rotation, -1, -2) @ rotation
+        assert float(jnp.max(jnp.abs(gram - jnp.eye(3)))) < 1e-6
 
 
 def test_the_wrappers_take_a_splitting():

@@ -10,6 +10,7 @@ did. On the left-trivialised cotangent bundle, body form, the generator is
 """
 
 from collections.abc import Callable
+from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -56,8 +57,12 @@ class ForcedRigidBody(AbstractBodyOnTStarSO3, exact_flows.AbstractSplitScene):
 
     torque_law: Callable[[Time, PyTree], Float[Array, "3"]] = eqx.field(static=True, default=harmonic_torque)
 
+    rotation_rows: ClassVar[tuple[int, ...]] = (0,)  # pyright: ignore[reportIncompatibleVariableOverride]  # an AbstractClassVar
+
     def __call__(self, t, y: BundleElement, args: ForcedParameters):
-        return y.fiber / args.inertia, self.torque_law(t, args.torque)
+        # The torque is the same for every trajectory of a batch in the state.
+        omega = y.fiber / args.inertia
+        return omega, jnp.broadcast_to(self.torque_law(t, args.torque), omega.shape)
 
     def power(self, t: Time, y: BundleElement, args: ForcedParameters) -> Array:
         """dH/dt = Ω·τ(t), the rate at which the torque does work."""

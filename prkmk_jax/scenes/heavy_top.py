@@ -82,6 +82,8 @@ class HeavyTop(AbstractScene, exact_flows.AbstractSplitScene):
     bundle: AbstractBundle = eqx.field(default_factory=lambda: Cotangent(SO3))
     form: ClassVar[Literal["space", "body"]] = "body"  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox lets a ClassVar implement an AbstractVar
 
+    rotation_rows: ClassVar[tuple[int, ...]] = (0,)  # pyright: ignore[reportIncompatibleVariableOverride]  # an AbstractClassVar
+
     def __check_init__(self):
         if not isinstance(self.bundle, (Cotangent, DirectProduct)) or self.bundle.base is not SO3:
             raise TypeError(f"HeavyTop lives on Cotangent(SO3) or DirectProduct(SO3), got {self.bundle!r}.")

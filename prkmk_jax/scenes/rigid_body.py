@@ -14,7 +14,7 @@ The inertia is passed as `args` (differentiable, no recompiles): for SO(3) a
 is I_k = J_i + J_j).
 """
 
-from typing import Literal
+from typing import ClassVar, Literal
 
 import equinox as eqx
 import jax
@@ -78,9 +78,11 @@ def symmetric_initial_state(q0: np.ndarray, m0: np.ndarray) -> BundleElement:
     return BundleElement(SOn(jnp.asarray(q0)), SOn(jnp.asarray(p0)))
 
 
-def angular_velocity(momentum: Array, inertia: Array) -> Array:
-    """Ω = I⁻¹M: M/I (vector form, SO(3)) or M_ij/(J_i + J_j) (SO(n) matrices)."""
-    if momentum.ndim >= 2 and momentum.shape[-1] == momentum.shape[-2] == inertia.shape[-1]:
+def angular_velocity(momentum: Array, inertia: Array, matrix: bool) -> Array:
+    """Ω = I⁻¹M: M_ij/(J_i + J_j) for skew matrices M (`matrix`, SO(n)), or
+    M/I for vectors (SO(3)); leading batch axes allowed. The form is said,
+    not read from the shape: three SO(3) momenta (3, 3) are not a matrix."""
+    if matrix:
         return momentum / (inertia[..., :, None] + inertia[..., None, :])
     return momentum / inertia
 
@@ -107,8 +109,10 @@ def _body_rate(pi, inertia):
     return pi / inertia if inertia.ndim == 1 else jnp.linalg.solve(inertia, pi)
 
 
-def _commutator_or_cross(a, b):
-    if a.ndim >= 2:
+def _commutator_or_cross(a, b, matrix: bool):
+    """[a, b]: the commutator of skew matrices (`matrix`, SO(n)) or the cross
+    product of vectors (SO(3)); leading batch axes allowed."""
+    if matrix:
         return a @ b - b @ a
     return jnp.cross(a, b)
 
@@ -116,10 +120,8 @@ def _commutator_or_cross(a, b):
 def symmetric_rigid_body(t, y: BundleElement, inertia) -> tuple[Array, Array]:
     """Body-form generator (Ω, Ω) of (3.3) on `Cartesian(SO3)` or `Cartesian(SOn)`."""
     q, p = rotation_matrix(y.base), rotation_matrix(y.fiber)
-    m = q.T @ p - p.T @ q
-    if isinstance(y.base, SO3):
-        m = vee(m)
-    omega = angular_velocity(m, inertia)
+    m = jnp.swapaxes(q, -1, -2) @ p - jnp.swapaxes(p, -1, -2) @ q  # leading batch axes allowed
+    omega = angular_velocity(vee(m), inertia, False) if isinstance(y.base, SO3) else angular_velocity(m, inertia, True)
     return omega, omega
 
 
@@ -132,15 +134,16 @@ def unreduced_rigid_body(bundle):
             raise ValueError("the unreduced rigid body is written for the left-trivialised (body) bundle.")
 
         def semidirect_field(t, y, inertia):
-            omega = angular_velocity(y.fiber, inertia)
+            omega = angular_velocity(y.fiber, inertia, bundle.base is SOn)
             return omega, jnp.zeros_like(omega)
 
         return semidirect_field
     if isinstance(bundle, DirectProduct):
 
         def direct_product_field(t, y, inertia):
-            omega = angular_velocity(y.fiber, inertia)
-            return omega, _commutator_or_cross(y.fiber, omega)
+            matrix = bundle.base is SOn
+            omega = angular_velocity(y.fiber, inertia, matrix)
+            return omega, _commutator_or_cross(y.fiber, omega, matrix)
 
         return direct_product_field
     raise TypeError(f"the unreduced rigid body lives on Cotangent, Semidirect(left) or DirectProduct, not {type(bundle).__name__}.")
@@ -222,6 +225,8 @@ class FreeRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
     bundle: AbstractBundle = eqx.field(default_factory=lambda: Cotangent(SO3))
     form: Literal["space", "body"] = eqx.field(default="body", static=True)
 
+    rotation_rows: ClassVar[tuple[int, ...]] = (0,)  # pyright: ignore[reportIncompatibleVariableOverride]  # an AbstractClassVar
+
     def __check_init__(self):
         left = isinstance(self.bundle, AbstractSemidirect) and self.bundle.trivialization == "left"
         if not (left or isinstance(self.bundle, DirectProduct)) or self.bundle.base is not SO3:
@@ -278,6 +283,8 @@ class SymmetricRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
     bundle: AbstractBundle = eqx.field(default_factory=lambda: Cartesian(SO3))
     form: Literal["space", "body"] = eqx.field(default="body", static=True)
 
+    rotation_rows: ClassVar[tuple[int, ...]] = (0, 9)  # pyright: ignore[reportIncompatibleVariableOverride]  # an AbstractClassVar
+
     def __check_init__(self):
         if not (isinstance(self.bundle, Cartesian) and self.bundle.base in (SO3, SOn)):
             raise TypeError(f"SymmetricRigidBody lives on Cartesian(SO3) or Cartesian(SOn), got {self.bundle!r}.")
@@ -291,7 +298,7 @@ class SymmetricRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
         g, m = attitude_and_momentum(self.bundle, y)
         matrix = self.bundle.base is SOn
         return {
-            "energy": diagnostics.energy(m, angular_velocity(m, inertia), matrix),
+            "energy": diagnostics.energy(m, angular_velocity(m, inertia, matrix), matrix),
             "momentum norm": diagnostics.body_momentum_norm(m, matrix),
             "spatial momentum": diagnostics.spatial_momentum(g, m, matrix),
             "orthogonality": jnp.maximum(
@@ -307,7 +314,7 @@ class SymmetricRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
         n = int(round((z.shape[-1] // 2) ** 0.5))
         q, p = z[: n * n].reshape(n, n), z[n * n :].reshape(n, n)
         m = q.T @ p - p.T @ q
-        omega = angular_velocity(vee(m), inertia) if n == 3 else angular_velocity(m, inertia)
+        omega = angular_velocity(vee(m), inertia, False) if n == 3 else angular_velocity(m, inertia, True)
         omega_hat = hat(omega) if n == 3 else omega
         return jnp.concatenate([(q @ omega_hat).ravel(), (p @ omega_hat).ravel()])
 

@@ -1,0 +1,224 @@
+"""The accuracy-per-second tables, made from the results of
+`benchmarks/splitting.py` and written into the documents that quote them.
+
+Each document holds its table between the lines
+
+    <!-- write_tables.py: NAME -->
+    <!-- /write_tables.py -->
+
+and this script rewrites what is between them; nothing there is edited by
+hand. Beside each results file it writes that file's `accuracy` table
+(`results/splitting*.md`). Notebook 05 shows the decision table as the output of the cell that
+calls `decision_table`, which this script writes too. `--check` rewrites
+nothing and exits with status 1 where a document differs from what the
+results give (the test suite runs it).
+
+    python benchmarks/write_tables.py            # after a benchmark run
+    python benchmarks/write_tables.py --check
+
+Tables:
+
+- `accuracy`: for each scene, batch, device and dtype, and each error
+  target, the fastest run of the library (a splitting or PRKMK) against the
+  fastest of diffrax's (Dopri8 and Tsit5 with constant steps), their
+  ratio, and the library's order-8 splitting per step over the
+  hand-written kernel's (the floor of that family: the same arithmetic
+  with no library code around it).
+- `summary`: one row per scene, batch, device and dtype: the library's
+  time over diffrax's at each target.
+- `decision`: the rows of `accuracy`, with the method to pick (the
+  fastest run that reached the target; the hand-written kernel left out,
+  it is not something a user calls) and the runner-up.
+"""
+
+import argparse
+import json
+import re
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+SOURCES = ("splitting.json", "splitting_16384.json", "splitting_gpu_float64.json", "splitting_gpu_float32.json")
+"""The results files, in the order their rows are listed (those present)."""
+DOCUMENTS = {
+    "README.md": ("summary",),
+    "benchmarks/README.md": ("accuracy",),
+    "docs/concepts/choosing.md": ("decision",),
+}
+FLOOR = "floor order 8 (hand-written)"
+DIFFRAX = ("Dopri8 fixed", "Tsit5 fixed")
+
+
+def is_library(method: str) -> bool:
+    return method.startswith(("splitting", "PRKMK"))
+
+
+def device_name(machine: dict) -> str:
+    card = machine.get("card (nvidia-smi)") or machine.get("device_kind", "")
+    if machine.get("devices", ["cpu"])[0].startswith("cpu") or card.lower() == "cpu":
+        return f"CPU, {machine['cpus']} cores"
+    return card
+
+
+def entries_of(data: dict, source: str) -> list[dict]:
+    """The timed rows of one results file (`splitting.py`'s JSON): one entry
+    per scene, batch, dtype and target, holding each method's fastest run
+    that reached the target (method: (steps, seconds))."""
+    device = device_name(data["machine"])
+    entries = []
+    keys = dict.fromkeys((r["scene"], r["regime"], r.get("dtype", "float64")) for r in data["rows"])
+    for scene, regime, dtype in keys:
+        for target in data.get("targets", (1e-6, 1e-8, 1e-10)):
+            label = f"{target:.0e}"
+            runs = {}
+            for r in data["rows"]:
+                timed = r.get("wall_s_at_target", {})
+                if (r["scene"], r["regime"], r.get("dtype", "float64")) == (scene, regime, dtype) and label in timed:
+                    runs[r["method"]] = (r["steps"], timed[label])
+            entries.append(dict(source=source, scene=scene, regime=regime, dtype=dtype, device=device, target=target, runs=runs))
+    return entries
+
+
+def load(results=RESULTS) -> list[dict]:
+    """`entries_of` every results file present, in the order of `SOURCES`."""
+    paths = [Path(results) / name for name in SOURCES]
+    return [e for path in paths if path.exists() for e in entries_of(json.loads(path.read_text()), path.stem)]
+
+
+def _batch(regime: str) -> str:
+    return "1" if regime == "single" else regime
+
+
+def _fastest(runs: dict, keep) -> tuple[str, int, float] | None:
+    found = [(m, n, s) for m, (n, s) in runs.items() if keep(m)]
+    return min(found, key=lambda e: e[2]) if found else None
+
+
+def _cell(entry) -> str:
+    return "not reached | –" if entry is None else f"{entry[0]} (n = {entry[1]}) | {entry[2] * 1e3:.2f}"
+
+
+def accuracy_table(entries: list[dict]) -> str:
+    lines = [
+        "| scene | batch | device | dtype | target | library's fastest | ms | diffrax's fastest | ms | library / diffrax "
+        "| order-8 splitting / hand-written, per step |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for e in entries:
+        library, diffrax = _fastest(e["runs"], is_library), _fastest(e["runs"], lambda m: m in DIFFRAX)
+        ratio = "–" if library is None or diffrax is None else f"{library[2] / diffrax[2]:.2f}"
+        own, floor = e["runs"].get("splitting order 8"), e["runs"].get(FLOOR)
+        per_step = "–" if own is None or floor is None else f"{(own[1] / own[0]) / (floor[1] / floor[0]):.2f}"
+        lines.append(
+            f"| {e['scene']} | {_batch(e['regime'])} | {e['device']} | {e['dtype']} | {e['target']:.0e} "
+            f"| {_cell(library)} | {_cell(diffrax)} | {ratio} | {per_step} |"
+        )
+    return "\n".join(lines)
+
+
+def decision_table(entries: list[dict]) -> str:
+    lines = ["| scene | batch | device, dtype | target | pick | ms | runner-up | ms |", "|---|---|---|---|---|---|---|---|"]
+    for e in entries:
+        ranked = sorted(((m, n, s) for m, (n, s) in e["runs"].items() if m != FLOOR), key=lambda r: r[2])
+        first = _cell(ranked[0]) if ranked else "none of the runs reached it | –"
+        second = _cell(ranked[1]) if len(ranked) > 1 else "– | –"
+        lines.append(f"| {e['scene']} | {_batch(e['regime'])} | {e['device']}, {e['dtype']} | {e['target']:.0e} | {first} | {second} |")
+    return "\n".join(lines)
+
+
+def summary_table(entries: list[dict]) -> str:
+    groups = dict.fromkeys((e["scene"], e["regime"], e["device"], e["dtype"]) for e in entries)
+    lines = [
+        "| scene | batch | device, dtype | library's fastest | library / diffrax's fastest, at each target |",
+        "|---|---|---|---|---|",
+    ]
+    for key in groups:
+        cells, names = [], []
+        for e in (e for e in entries if (e["scene"], e["regime"], e["device"], e["dtype"]) == key):
+            library, diffrax = _fastest(e["runs"], is_library), _fastest(e["runs"], lambda m: m in DIFFRAX)
+            if library is not None and library[0] not in names:
+                names.append(library[0])
+            if library is None:
+                ratio = "library not reached" if diffrax is not None else "not reached"
+            elif diffrax is None:
+                ratio = "diffrax not reached"
+            else:
+                ratio = f"{library[2] / diffrax[2]:.2f}" + (" **(slower)**" if library[2] > diffrax[2] else "")
+            cells.append(f"{e['target']:.0e}: {ratio}")
+        scene, regime, device, dtype = key
+        lines.append(f"| {scene} | {_batch(regime)} | {device}, {dtype} | {', '.join(names) or '–'} | {'; '.join(cells)} |")
+    return "\n".join(lines)
+
+
+TABLES = {"accuracy": accuracy_table, "decision": decision_table, "summary": summary_table}
+
+
+def rewritten(text: str, name: str, table: str) -> str:
+    pattern = re.compile(rf"(<!-- write_tables\.py: {name} -->\n)(?:.*?\n)?(<!-- /write_tables\.py -->)", re.S)
+    if not pattern.search(text):
+        raise ValueError(f"no block '<!-- write_tables.py: {name} -->' … '<!-- /write_tables.py -->' to write the {name} table into")
+    return pattern.sub(lambda m: m.group(1) + table + "\n" + m.group(2), text)
+
+
+NOTEBOOK = "notebooks/05_choosing_a_method.ipynb"
+"""Its cell that shows `decision_table` holds the table as its output."""
+
+
+def notebook_with_table(path: Path, table: str) -> tuple[str, str]:
+    """(the notebook's text, the text with the output of its decision-table
+    cell set to `table`), both as nbformat writes them."""
+    import nbformat
+
+    text = path.read_text()
+    nb = nbformat.reads(text, as_version=4)
+    cells = [c for c in nb.cells if c.cell_type == "code" and "write_tables.decision_table" in c.source]
+    if len(cells) != 1:
+        raise ValueError(f"{path.name}: expected one code cell showing write_tables.decision_table, found {len(cells)}")
+    cells[0].outputs = [
+        nbformat.v4.new_output(
+            "display_data", data={"text/markdown": table, "text/plain": "<IPython.core.display.Markdown object>"}, metadata={}
+        )
+    ]
+    return nbformat.writes(nbformat.reads(text, as_version=4)) + "\n", nbformat.writes(nb) + "\n"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--check", action="store_true", help="write nothing; exit 1 where a document differs from the results")
+    args = parser.parse_args(argv)
+    entries = load()
+    stale = []
+    for document, names in DOCUMENTS.items():
+        path = ROOT / document
+        text = path.read_text()
+        new = text
+        for name in names:
+            new = rewritten(new, name, TABLES[name](entries))
+        if new != text:
+            stale.append(document)
+            if not args.check:
+                path.write_text(new)
+    for name in SOURCES:  # each results file's own table beside it
+        source = RESULTS / name
+        if source.exists():
+            path = source.with_suffix(".md")
+            table = accuracy_table(entries_of(json.loads(source.read_text()), source.stem)) + "\n"
+            if not path.exists() or path.read_text() != table:
+                stale.append(str(path.relative_to(ROOT)))
+                if not args.check:
+                    path.write_text(table)
+    before, after = notebook_with_table(ROOT / NOTEBOOK, decision_table(entries))
+    if before != after:
+        stale.append(NOTEBOOK)
+        if not args.check:
+            (ROOT / NOTEBOOK).write_text(after)
+    if args.check and stale:
+        print("generated tables out of date in: " + ", ".join(stale) + " (run python benchmarks/write_tables.py)")
+        return 1
+    print(("checked: " if args.check else "written: ") + ", ".join([*DOCUMENTS, NOTEBOOK]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
