@@ -27,16 +27,17 @@ vectorises (`benchmarks/splitting.py` measures both).
 import abc
 import math
 from collections.abc import Callable
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
-from .bundles import AbstractBundle, BundleElement
+from .bundles import BundleElement
 from .coordinates import AbstractCoordinates, Cayley
 from .groups.so3 import SO3
 from .groups.trig import sincos
+from .method import AbstractFieldOnBundle
 
 VECTORISED_BATCH = 16
 """From this many trajectories in the state on, rotations take their sines
@@ -135,12 +136,10 @@ class MomentumKick(AbstractExactFlow):
         return jnp.stack([moved.get(r, z[r]) for r in range(z.shape[0])])
 
 
-class AbstractSplitScene(eqx.Module):
+class AbstractSplitScene(AbstractFieldOnBundle):
     """A scene whose field is a sum of parts with exact flows: what a
     `Splitting` method needs of it."""
 
-    bundle: eqx.AbstractVar[AbstractBundle]
-    form: eqx.AbstractVar[Literal["space", "body"]]
     rotation_rows: eqx.AbstractClassVar[tuple[int, ...]]
     """The first row of each 3×3 rotation matrix in the packed state (row-major
     over nine rows; its columns may be relabelled): what `Splitting` moves back

@@ -37,6 +37,18 @@ VectorField = Callable[[Time, BundleElement, PyTree], AlgebraPair]
 y' = y·(ξ, η) (body form)."""
 
 
+class AbstractFieldOnBundle(eqx.Module):
+    """A vector field that says which bundle it lives on and in which form
+    (the scenes): a PRKMK method refuses it unless they are the method's own,
+    since the same generator read on another bundle or from the other side is
+    another system."""
+
+    bundle: eqx.AbstractVar[AbstractBundle]
+    """The bundle group the state lives on."""
+    form: eqx.AbstractVar[Literal["space", "body"]]
+    """Whether the generator acts from the left (space) or right (body)."""
+
+
 def tree_scale(alpha, tree):
     """alpha·tree, leaf by leaf."""
     return jax.tree.map(lambda x: alpha * x, tree)

@@ -34,7 +34,7 @@ from jaxtyping import PyTree
 
 from .bundles import AbstractBundle, AlgebraPair, BundleElement
 from .coordinates import AbstractCoordinates, Exp
-from .method import RESULTS, AbstractMethod, Iterations, Time, VectorField, first_failure, flag_nonfinite
+from .method import RESULTS, AbstractFieldOnBundle, AbstractMethod, Iterations, Time, VectorField, first_failure, flag_nonfinite
 from .stage_plan import COUPLED, Explicit, plan_stages, stage_dependence
 from .tableaus import PartitionedTableau, stormer_verlet
 
@@ -110,7 +110,22 @@ class PRKMK(AbstractMethod):
         return carried[0]
 
     def check_fits(self, vector_field: VectorField) -> None:
-        """Any field on the bundle (its shapes are checked by `check_vector_field`)."""
+        """Any field on the bundle (its shapes are checked by
+        `check_vector_field`); a field that names its bundle and form (a
+        scene, `AbstractFieldOnBundle`) must name this method's."""
+        if not isinstance(vector_field, AbstractFieldOnBundle):
+            return
+        name = type(vector_field).__name__
+        if eqx.tree_equal(vector_field.bundle, self.bundle) is not True:
+            raise ValueError(
+                f"{name} lives on {vector_field.bundle!r}, but this method was built for {self.bundle!r}: the same generator on "
+                f"another bundle is another system. Build the method from the scene (scene.method(tableau)) or on its bundle."
+            )
+        if vector_field.form != self.form:
+            raise ValueError(
+                f"{name} is written in {vector_field.form} form, but this method steps in {self.form} form: "
+                f"build it with form={vector_field.form!r} (scene.method(tableau) does)."
+            )
 
     def initial_guesses(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None):
         """The state `step_with_guesses` carries, before the first step: the

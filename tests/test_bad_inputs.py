@@ -15,6 +15,7 @@ import pytest
 
 import prkmk_jax as pk
 from helpers import INERTIA, PositiveReals, initial_state, rigid_body_field
+from prkmk_jax.scenes import FreeRigidBody, HeavyTop, TopParameters
 
 COTANGENT = pk.Cotangent(pk.SO3)
 FIELD = rigid_body_field(COTANGENT, "body")
@@ -33,6 +34,13 @@ def _integrate(y0=GOOD, dt=0.1, num_steps=10, args=ARGS, field=FIELD, method=MET
 
 def _diffeqsolve(y0=GOOD, term=None, solver=None, args=ARGS, **kw):
     return diffrax.diffeqsolve(term or pk.PRKMKTerm(FIELD), solver or pk.PRKMKSolver(METHOD), 0.0, 1.0, 0.1, y0, args, **kw).ys
+
+
+TOP = HeavyTop()
+TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
+TOP_ON_G_X_G_METHOD = HeavyTop(pk.DirectProduct(pk.SO3)).method(pk.stormer_verlet)
+FREE_BODY = FreeRigidBody()
+SPACE_FORM_METHOD = pk.PRKMK(COTANGENT, tableau=pk.stormer_verlet)  # form="space" by default
 
 
 def _wrong_shape_field(t, y, args):
@@ -92,6 +100,24 @@ STATIC = {
     "save_every not a divisor": (lambda: _integrate(num_steps=10, save_every=3), ValueError, "must divide"),
     "dt negative": (lambda: _integrate(dt=-0.1), ValueError, "dt must be > 0"),
     "vector field of the wrong shape": (lambda: _integrate(field=_wrong_shape_field), ValueError, "returned ξ with shape"),
+    # a scene and a method that do not match
+    "scene on another bundle": (lambda: _integrate(field=TOP, method=TOP_ON_G_X_G_METHOD, args=TOP_ARGS), ValueError, "lives on Cotangent"),
+    "scene on another bundle, jitted": (
+        lambda: jax.jit(lambda y: _integrate(y, field=TOP, method=TOP_ON_G_X_G_METHOD, args=TOP_ARGS))(GOOD),
+        ValueError,
+        "lives on Cotangent",
+    ),
+    "scene in the other form": (lambda: _integrate(field=FREE_BODY, method=SPACE_FORM_METHOD), ValueError, "written in body form"),
+    "scene in the other form, composed and jitted": (
+        lambda: jax.jit(lambda y: _integrate(y, field=FREE_BODY, method=pk.Composition(SPACE_FORM_METHOD, pk.suzuki_5)))(GOOD),
+        ValueError,
+        "written in body form",
+    ),
+    "diffeqsolve, scene on another bundle": (
+        lambda: _diffeqsolve(term=pk.PRKMKTerm(TOP), solver=pk.PRKMKSolver(TOP_ON_G_X_G_METHOD), args=TOP_ARGS),
+        ValueError,
+        "lives on Cotangent",
+    ),
     # diffeqsolve
     # diffrax checks an ODETerm's output against y0 first and names ODETerm;
     # a field that does return a state is refused by PRKMKSolver.

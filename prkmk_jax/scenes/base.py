@@ -9,7 +9,6 @@ embedding ℝ⁹×ℝ³ for the solvers it is compared with.
 import abc
 from typing import ClassVar, Literal
 
-import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
@@ -17,23 +16,19 @@ from ..bundles import AbstractBundle, AlgebraPair, BundleElement, Cotangent
 from ..compositions import CompositionCoefficients
 from ..coordinates import AbstractCoordinates, Exp
 from ..groups import SO3, SOn
-from ..method import Time
+from ..method import AbstractFieldOnBundle, Time
 from ..splitting import Splitting
 from ..step import PRKMK
 from ..tableaus import PartitionedTableau
 
 
-class AbstractScene(eqx.Module):
+class AbstractScene(AbstractFieldOnBundle):
     """A system y' = y·(ξ, η) (body form) or (ξ, η)·y (space form) on a
-    bundle group. Calling the scene is its generator, so it is itself the
-    vector field: `integrate(scene.method(tableau), scene, y0, …)`,
-    `PRKMKTerm(scene)`. Physical parameters are `args` (differentiable, no
+    bundle group (`bundle`, `form`). Calling the scene is its generator, so
+    it is itself the vector field: `integrate(scene.method(tableau), scene,
+    y0, …)`, `PRKMKTerm(scene)`; a method built on another bundle or form
+    refuses it. Physical parameters are `args` (differentiable, no
     recompilation)."""
-
-    bundle: eqx.AbstractVar[AbstractBundle]
-    """The bundle group the state lives on."""
-    form: eqx.AbstractVar[Literal["space", "body"]]
-    """Whether the generator acts from the left (space) or right (body)."""
 
     @abc.abstractmethod
     def __call__(self, t: Time, y: BundleElement, args: PyTree) -> AlgebraPair:
