@@ -131,6 +131,7 @@ def _runners(scene_name, n, floor_fractions=pk.kahan_li_8.fractions, dtype=jnp.f
         for name, c in (("Strang", None), ("order 4", pk.suzuki_5), ("order 6", pk.kahan_li_6), ("order 8", pk.kahan_li_8))
     }
     out["PRKMK Lobatto 6"] = library(scene.method(pk.lobatto_iiia_iiib6))
+    out["PRKMK Lobatto 6 Cayley"] = library(scene.method(pk.lobatto_iiia_iiib6, pk.Cayley()))
     out["floor order 8 (hand-written)"] = floor
     out["Dopri8 fixed"] = fixed_step(diffrax.Dopri8())
     out["Tsit5 fixed"] = fixed_step(diffrax.Tsit5())
@@ -143,6 +144,7 @@ SWEEPS = {
     "splitting order 6": [30, 45, 70, 100, 150, 220],
     "splitting order 8": [16, 20, 24, 28, 32, 40, 48, 56, 64, 80, 96, 128, 160],
     "PRKMK Lobatto 6": [40, 60, 90, 140, 200, 300, 450],
+    "PRKMK Lobatto 6 Cayley": [60, 90, 140, 200, 300, 450, 700],
     "floor order 8 (hand-written)": [16, 20, 24, 28, 32, 40, 48, 56, 64, 80, 96, 128, 160],
     "Dopri8 fixed": [25, 35, 42, 50, 60, 70, 85, 100, 120, 140, 170, 200, 250],
     "Tsit5 fixed": [100, 160, 250, 400, 630, 1000, 1600, 2500],
@@ -198,7 +200,7 @@ def _compiled(lowered, parallel):
         return {key: (future.result(), None) for key, future in futures.items()}
 
 
-def run(regime, scene_name, quick, rounds, short=False, dtype=jnp.float64, parallel_compile=False, without=()):
+def run(regime, scene_name, quick, rounds, short=False, dtype=jnp.float64, parallel_compile=False, without=(), only=()):
     targets = TARGETS if dtype == jnp.float64 else TARGETS_FLOAT32
     batch = None if regime == "single" else int(regime)
     q0, p0 = C.initial_conditions(batch, seed=1)
@@ -216,7 +218,7 @@ def run(regime, scene_name, quick, rounds, short=False, dtype=jnp.float64, paral
     lowered = {
         (method, n): functools.partial(jax.jit(_runners(scene_name, n, fractions, dtype)[method]).lower, q, p)
         for method, sweep in sweeps.items()
-        if not (quick and method in QUICK_SKIPS) and method not in without
+        if not (quick and method in QUICK_SKIPS) and method not in without and (not only or method in only)
         for n in (sweep[:1] if quick else sweep)
     }
     for (method, n), (compiled, compile_s) in _compiled(lowered, parallel_compile).items():
@@ -362,6 +364,7 @@ def _arguments(parser):
     parser.add_argument("--float32", action="store_true", help="states and parameters in float32")
     parser.add_argument("--name", default="splitting", help="stem of the results files")
     parser.add_argument("--without", default="", help="comma-separated methods to leave out (e.g. 'Tsit5 fixed')")
+    parser.add_argument("--methods", default="", help="comma-separated methods to run (default: all of the sweep)")
     parser.add_argument("--parallel-compile", action="store_true", help="compile each sweep on threads (compile times not recorded)")
 
 
@@ -388,6 +391,7 @@ def main(argv=None):
                 dtype=dtype,
                 parallel_compile=args.parallel_compile,
                 without=args.without.split(","),
+                only=[m for m in args.methods.split(",") if m],
             )
             write([])  # what a run cut short has measured so far
     write([] if args.short else arrangements(args.quick))

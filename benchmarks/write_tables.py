@@ -39,7 +39,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
-SOURCES = ("splitting.json", "splitting_16384.json", "splitting_gpu_float64.json", "splitting_gpu_float32.json")
+SOURCES = ("splitting.json", "splitting_prkmk.json", "splitting_16384.json", "splitting_gpu_float64.json", "splitting_gpu_float32.json")
 """The results files, in the order their rows are listed (those present)."""
 DOCUMENTS = {
     "README.md": ("summary",),
@@ -47,6 +47,8 @@ DOCUMENTS = {
     "docs/concepts/choosing.md": ("decision",),
 }
 FLOOR = "floor order 8 (hand-written)"
+FAMILIES = (("splittings", "splitting"), ("PRKMK", "PRKMK"))
+"""The library's families: name, and the prefix of their methods in the results."""
 DIFFRAX = ("Dopri8 fixed", "Tsit5 fixed")
 
 
@@ -64,11 +66,14 @@ def device_name(machine: dict) -> str:
 def entries_of(data: dict, source: str) -> list[dict]:
     """The timed rows of one results file (`splitting.py`'s JSON): one entry
     per scene, batch, dtype and target, holding each method's fastest run
-    that reached the target (method: (steps, seconds))."""
+    that reached the target (method: (steps, seconds)) and which of the
+    library's families the run swept (`families`)."""
     device = device_name(data["machine"])
     entries = []
     keys = dict.fromkeys((r["scene"], r["regime"], r.get("dtype", "float64")) for r in data["rows"])
     for scene, regime, dtype in keys:
+        swept = {r["method"] for r in data["rows"] if (r["scene"], r["regime"], r.get("dtype", "float64")) == (scene, regime, dtype)}
+        families = " and ".join(name for name, prefix in FAMILIES if any(m.startswith(prefix) for m in swept))
         for target in data.get("targets", (1e-6, 1e-8, 1e-10)):
             label = f"{target:.0e}"
             runs = {}
@@ -76,7 +81,9 @@ def entries_of(data: dict, source: str) -> list[dict]:
                 timed = r.get("wall_s_at_target", {})
                 if (r["scene"], r["regime"], r.get("dtype", "float64")) == (scene, regime, dtype) and label in timed:
                     runs[r["method"]] = (r["steps"], timed[label])
-            entries.append(dict(source=source, scene=scene, regime=regime, dtype=dtype, device=device, target=target, runs=runs))
+            entries.append(
+                dict(source=source, scene=scene, regime=regime, dtype=dtype, device=device, target=target, runs=runs, families=families)
+            )
     return entries
 
 
@@ -101,9 +108,9 @@ def _cell(entry) -> str:
 
 def accuracy_table(entries: list[dict]) -> str:
     lines = [
-        "| scene | batch | device | dtype | target | library's fastest | ms | diffrax's fastest | ms | library / diffrax "
+        "| scene | batch | device | dtype | library runs | target | library's fastest | ms | diffrax's fastest | ms | library / diffrax "
         "| order-8 splitting / hand-written, per step |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for e in entries:
         library, diffrax = _fastest(e["runs"], is_library), _fastest(e["runs"], lambda m: m in DIFFRAX)
@@ -111,31 +118,35 @@ def accuracy_table(entries: list[dict]) -> str:
         own, floor = e["runs"].get("splitting order 8"), e["runs"].get(FLOOR)
         per_step = "–" if own is None or floor is None else f"{(own[1] / own[0]) / (floor[1] / floor[0]):.2f}"
         lines.append(
-            f"| {e['scene']} | {_batch(e['regime'])} | {e['device']} | {e['dtype']} | {e['target']:.0e} "
+            f"| {e['scene']} | {_batch(e['regime'])} | {e['device']} | {e['dtype']} | {e['families']} | {e['target']:.0e} "
             f"| {_cell(library)} | {_cell(diffrax)} | {ratio} | {per_step} |"
         )
     return "\n".join(lines)
 
 
 def decision_table(entries: list[dict]) -> str:
-    lines = ["| scene | batch | device, dtype | target | pick | ms | runner-up | ms |", "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| scene | batch | device, dtype | library runs | target | pick | ms | runner-up | ms |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for e in entries:
         ranked = sorted(((m, n, s) for m, (n, s) in e["runs"].items() if m != FLOOR), key=lambda r: r[2])
         first = _cell(ranked[0]) if ranked else "none of the runs reached it | –"
         second = _cell(ranked[1]) if len(ranked) > 1 else "– | –"
-        lines.append(f"| {e['scene']} | {_batch(e['regime'])} | {e['device']}, {e['dtype']} | {e['target']:.0e} | {first} | {second} |")
+        where = f"{e['scene']} | {_batch(e['regime'])} | {e['device']}, {e['dtype']} | {e['families']}"
+        lines.append(f"| {where} | {e['target']:.0e} | {first} | {second} |")
     return "\n".join(lines)
 
 
 def summary_table(entries: list[dict]) -> str:
-    groups = dict.fromkeys((e["scene"], e["regime"], e["device"], e["dtype"]) for e in entries)
+    groups = dict.fromkeys((e["scene"], e["regime"], e["device"], e["dtype"], e["families"]) for e in entries)
     lines = [
-        "| scene | batch | device, dtype | library's fastest | library / diffrax's fastest, at each target |",
-        "|---|---|---|---|---|",
+        "| scene | batch | device, dtype | library runs | library's fastest | library / diffrax's fastest, at each target |",
+        "|---|---|---|---|---|---|",
     ]
     for key in groups:
         cells, names = [], []
-        for e in (e for e in entries if (e["scene"], e["regime"], e["device"], e["dtype"]) == key):
+        for e in (e for e in entries if (e["scene"], e["regime"], e["device"], e["dtype"], e["families"]) == key):
             library, diffrax = _fastest(e["runs"], is_library), _fastest(e["runs"], lambda m: m in DIFFRAX)
             if library is not None and library[0] not in names:
                 names.append(library[0])
@@ -146,8 +157,8 @@ def summary_table(entries: list[dict]) -> str:
             else:
                 ratio = f"{library[2] / diffrax[2]:.2f}" + (" **(slower)**" if library[2] > diffrax[2] else "")
             cells.append(f"{e['target']:.0e}: {ratio}")
-        scene, regime, device, dtype = key
-        lines.append(f"| {scene} | {_batch(regime)} | {device}, {dtype} | {', '.join(names) or '–'} | {'; '.join(cells)} |")
+        scene, regime, device, dtype, families = key
+        lines.append(f"| {scene} | {_batch(regime)} | {device}, {dtype} | {families} | {', '.join(names) or '–'} | {'; '.join(cells)} |")
     return "\n".join(lines)
 
 
