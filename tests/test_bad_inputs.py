@@ -15,7 +15,7 @@ import pytest
 
 import prkmk_jax as pk
 from helpers import INERTIA, PositiveReals, initial_state, rigid_body_field
-from prkmk_jax.scenes import FreeRigidBody, HeavyTop, TopParameters
+from prkmk_jax.scenes import ForcedRigidBody, FreeRigidBody, HeavyTop, TopParameters
 
 COTANGENT = pk.Cotangent(pk.SO3)
 FIELD = rigid_body_field(COTANGENT, "body")
@@ -113,6 +113,8 @@ STATIC = {
         ValueError,
         "written in body form",
     ),
+    "ForcedRigidBody given a bundle": (lambda: ForcedRigidBody(pk.DirectProduct(pk.SO3)), TypeError, "lives on Cotangent"),
+    "ForcedRigidBody given a torque that is not a function": (lambda: ForcedRigidBody("harmonic"), TypeError, "torque_law must be"),
     "diffeqsolve, scene on another bundle": (
         lambda: _diffeqsolve(term=pk.PRKMKTerm(TOP), solver=pk.PRKMKSolver(TOP_ON_G_X_G_METHOD), args=TOP_ARGS),
         ValueError,

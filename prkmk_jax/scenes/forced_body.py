@@ -17,7 +17,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
 from .. import diagnostics, exact_flows
-from ..bundles import BundleElement
+from ..bundles import AbstractBundle, BundleElement
 from ..groups import hat
 from ..method import Time
 from .base import AbstractBodyOnTStarSO3, rotation_matrix
@@ -58,6 +58,15 @@ class ForcedRigidBody(AbstractBodyOnTStarSO3, exact_flows.AbstractSplitScene):
     torque_law: Callable[[Time, PyTree], Float[Array, "3"]] = eqx.field(static=True, default=harmonic_torque)
 
     rotation_rows: ClassVar[tuple[int, ...]] = (0,)  # pyright: ignore[reportIncompatibleVariableOverride]  # an AbstractClassVar
+
+    def __check_init__(self):
+        if isinstance(self.torque_law, AbstractBundle):
+            raise TypeError(
+                f"ForcedRigidBody lives on Cotangent(SO3) only; its one argument is the torque law (t, params) -> torque, "
+                f"got the bundle {self.torque_law!r}."
+            )
+        if not callable(self.torque_law):
+            raise TypeError(f"ForcedRigidBody's torque_law must be a function (t, params) -> body torque, got {self.torque_law!r}.")
 
     def __call__(self, t, y: BundleElement, args: ForcedParameters):
         # The torque is the same for every trajectory of a batch in the state.
