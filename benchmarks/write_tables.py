@@ -38,7 +38,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "benchmarks" / "results"
+"""The checkout whose documents and `benchmarks/results` this script reads and writes."""
 SOURCES = ("splitting.json", "splitting_prkmk.json", "splitting_16384.json", "splitting_gpu_float64.json", "splitting_gpu_float32.json")
 """The results files, in the order their rows are listed (those present)."""
 DOCUMENTS = {
@@ -87,9 +87,10 @@ def entries_of(data: dict, source: str) -> list[dict]:
     return entries
 
 
-def load(results=RESULTS) -> list[dict]:
-    """`entries_of` every results file present, in the order of `SOURCES`."""
-    paths = [Path(results) / name for name in SOURCES]
+def load(root: Path | None = None) -> list[dict]:
+    """`entries_of` every results file present under `root` (default `ROOT`),
+    in the order of `SOURCES`."""
+    paths = [(root or ROOT) / "benchmarks" / "results" / name for name in SOURCES]
     return [e for path in paths if path.exists() for e in entries_of(json.loads(path.read_text()), path.stem)]
 
 
@@ -211,7 +212,7 @@ def main(argv=None) -> int:
             if not args.check:
                 path.write_text(new)
     for name in SOURCES:  # each results file's own table beside it
-        source = RESULTS / name
+        source = ROOT / "benchmarks" / "results" / name
         if source.exists():
             path = source.with_suffix(".md")
             table = accuracy_table(entries_of(json.loads(source.read_text()), source.stem)) + "\n"
