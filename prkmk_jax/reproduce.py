@@ -110,7 +110,7 @@ def method_of(run: Run) -> PRKMK:
     """The symmetric body on SO(3)² at h = 0.1 has h·Lip ≈ 0.8: fixed-point
     iteration needs ~94 iterations a step there (measured), Newton 4. The
     other runs converge in ≤ 24 fixed-point iterations, cheaper than Newton's
-    dense Jacobians (on SO(4)² Newton took 5.2 s against 0.7 s)."""
+    dense Jacobians (on SO(4)² Newton was several times slower)."""
     root_finder = optx.Newton(rtol=1e-12, atol=1e-12) if (run.scene == "symmetric" and run.n == 3) else None
     return scene_of(run).method(run.tableau, COORDINATES[run.coordinates], root_finder=root_finder)
 
@@ -138,7 +138,7 @@ def _trajectory_diagnostics(scene: AbstractScene, ys, inertia) -> tuple[dict, di
     """The scene's invariants along a saved trajectory and their worst
     drifts, as one compiled program per trajectory length and scene.
     Computed op by op, each operation is a program of its own, ~20 compiled
-    for every new trajectory length (0.3–0.5 s of a run)."""
+    for every new trajectory length."""
     invariants = scene.invariants(ys, inertia)
     curves = {
         "energy": invariants["energy"],

@@ -58,18 +58,14 @@ def _rotation_terms(u, x):
     """(u × x, u × (u × x)) by two cross products.
 
     The actions exp(û)x and dexp_u v use this form, not (u·x)u − θ²x: a dot
-    product is a reduction over the length-3 axis, and XLA's CPU backend (jax
-    0.10.2) runs such reductions as separate YNNPACK kernels at large batches.
-    With it the Störmer–Verlet step on T*SO(3) took 546–557 ns per
-    trajectory-step at batch 16384 (float64), with two cross products 337–347
-    (`benchmarks/floor.py`'s problem, interleaved). dexp⁻¹ keeps the dot form:
-    Lobatto 4 in float32 at batch 1024 ran 6–10 % slower with two cross
-    products there as well.
+    product is a reduction over the length-3 axis, which XLA's CPU backend
+    runs as separate kernels at large batches, and the step on T*SO(3) is
+    markedly faster this way (`benchmarks/floor.py` measures it). dexp⁻¹
+    keeps the dot form: there two cross products measured slower.
 
     The derivative is that of the dot form (`_cross_twice`): the transpose
-    of a cross product is a handful of slices and pads, and with cross
-    products in the derivative as well, `value_and_grad` of Störmer–Verlet
-    for one trajectory took 16.7 µs a step against 13.9 µs with this one.
+    of a cross product is a handful of slices and pads, and a gradient with
+    cross products in the derivative as well measured slower.
     """
     ux = jnp.cross(u, x)
     return ux, jnp.cross(u, ux)
@@ -100,10 +96,9 @@ def _rotation_coefficients(t2):
     Two sines rather than one sine and cosine of θ/2: XLA's CPU fusion
     recomputes a cosine in every fusion that consumes it (it treats it as
     cheap) but materialises a sine once; with the cosine, a Lobatto 4 step
-    on T*SO(3) ran 1.7× slower at batch 1024 (benchmarks/floor.py). Both
-    share one square root and one double `where` here instead of two
-    `taylor_or_exact` calls: written that way, the Störmer–Verlet step ran
-    at 566–584 against 372 ns per trajectory-step at batch 1024.
+    on T*SO(3) ran markedly slower (benchmarks/floor.py). Both share one
+    square root and one double `where` here instead of two `taylor_or_exact`
+    calls, which written separately also measured slower.
     """
     small = t2 < _SMALL
     theta = jnp.sqrt(jnp.where(small, _SMALL, t2))
