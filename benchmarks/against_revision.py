@@ -5,7 +5,9 @@ as it was at `--rev` is exported with `git archive` under the name
 `prkmk_jax_at_rev` (its imports are relative) and imported next to the
 working tree's `prkmk_jax`. Both build the same method on the same problem —
 the free rigid body on T*SO(3) (body form, h = 0.01, the paper's inertia, a
-batch of random attitudes and momenta) — and are compiled, checked to give
+batch of random attitudes and momenta), or the heavy top on T*SO(3) (the
+same, with the gravity torque Γ × ℓ, ℓ = (0.1, 0.2, 0.9), as η) — and are
+compiled, checked to give
 the same final states (≤ 1e-11 in float64, 1e-4 in float32), and then timed
 in alternation. Columns: ns per trajectory-step of each, the median of the
 per-round ratios now/before, and the compile times.
@@ -34,6 +36,7 @@ import _common as C
 import prkmk_jax as pk
 
 H = 0.01
+LEVER = jnp.array([0.1, 0.2, 0.9])
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -53,9 +56,15 @@ def _method(lib, tableau, coordinates):
     return lib.PRKMK(lib.Cotangent(lib.SO3), coords, getattr(lib, tableau), form="body")
 
 
-def _runs(lib, tableau, coordinates, steps):
-    # The field only reads y.fiber, so one function serves both revisions.
-    method, field = _method(lib, tableau, coordinates), C.SCENE
+def _heavy_top(t, y, inertia):
+    """The heavy top's generator (Ω, Γ × ℓ) on T*SO(3), body form, written
+    on the state's arrays so that it serves both revisions."""
+    return y.fiber / inertia, jnp.cross(y.base.matrix[..., 2, :], LEVER)
+
+
+def _runs(lib, tableau, coordinates, steps, scene="free body"):
+    # Both fields read the state's arrays only, so one function serves both revisions.
+    method, field = _method(lib, tableau, coordinates), (C.SCENE if scene == "free body" else _heavy_top)
 
     def integrate(q0, pi0, inertia):
         y0 = lib.BundleElement(lib.SO3(q0), pi0)
@@ -80,10 +89,10 @@ def _runs(lib, tableau, coordinates, steps):
     return {"integrate": batched(integrate), "diffeqsolve": batched(diffeqsolve), "value_and_grad": value_and_grad}
 
 
-def compare(before, tableau, coordinates, path, batch, dtype, steps, rounds):
+def compare(before, tableau, coordinates, path, batch, dtype, steps, rounds, scene="free body"):
     qs, pis = C.initial_conditions(batch, seed=3)
     args = (jnp.asarray(qs, dtype), jnp.asarray(pis, dtype), jnp.asarray(C.INERTIA, dtype))
-    fns = {"now": _runs(pk, tableau, coordinates, steps)[path], "before": _runs(before, tableau, coordinates, steps)[path]}
+    fns = {"now": _runs(pk, tableau, coordinates, steps, scene)[path], "before": _runs(before, tableau, coordinates, steps, scene)[path]}
     compiled, compile_s, outputs = C.compile_all(fns, *args)
     gap = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(outputs["now"]), jax.tree.leaves(outputs["before"])))
     scale = max(1.0, max(float(jnp.max(jnp.abs(a))) for a in jax.tree.leaves(outputs["before"])))
@@ -94,6 +103,7 @@ def compare(before, tableau, coordinates, path, batch, dtype, steps, rounds):
     per_step = C.ns_per_trajectory_step(times, batch, steps)
     ratio = C.median_ratio(times, "now", "before")
     return dict(
+        scene=scene,
         tableau=tableau,
         coordinates=coordinates,
         path=path,
@@ -111,11 +121,14 @@ def main(argv=None):
     args, out = C.cli(__doc__, argv, lambda p: (p.add_argument("--rev", default="HEAD"), p.add_argument("--rounds", type=int, default=9)))
     before, sha = import_revision(args.rev)
     if args.quick:
-        cases = [("stormer_verlet", "exp", "integrate", 8, jnp.float64)]
+        cases = [
+            ("stormer_verlet", "exp", "integrate", 8, jnp.float64, "free body"),
+            ("lobatto_iiia_iiib6", "cayley", "integrate", 8, jnp.float64, "heavy top"),
+        ]
         rounds, work = 2, 80
     else:
         cases = [
-            (tab, coords, path, batch, dtype)
+            (tab, coords, path, batch, dtype, "free body")
             for tab, coords in (
                 ("stormer_verlet", "exp"),
                 ("stormer_verlet", "cayley"),
@@ -126,24 +139,30 @@ def main(argv=None):
             for batch in (1, 64, 1024)
             for dtype in (jnp.float64,)
         ]
-        cases += [("stormer_verlet", "exp", "integrate", b, jnp.float32) for b in (1, 1024)]
+        cases += [("stormer_verlet", "exp", "integrate", b, jnp.float32, "free body") for b in (1, 1024)]
         large = [(tab, dtype) for tab in ("stormer_verlet", "lobatto_iiia_iiib4") for dtype in (jnp.float64, jnp.float32)]
-        cases += [(tab, "exp", "integrate", 16384, dtype) for tab, dtype in large]
-        cases += [("stormer_verlet", "exp", "value_and_grad", b, jnp.float64) for b in (1, 64)]
+        cases += [(tab, "exp", "integrate", 16384, dtype, "free body") for tab, dtype in large]
+        cases += [("stormer_verlet", "exp", "value_and_grad", b, jnp.float64, "free body") for b in (1, 64)]
+        cases += [
+            (tab, coords, "integrate", batch, jnp.float64, scene)
+            for scene in ("free body", "heavy top")
+            for tab, coords in (("lobatto_iiia_iiib6", "exp"), ("lobatto_iiia_iiib6", "cayley"), ("stormer_verlet", "cayley"))
+            for batch in (1, 1024)
+        ]
         rounds, work = args.rounds, 200_000
     print(f"now: working tree; before: {args.rev} ({sha})")
     print(
-        f"{'tableau':20s} {'coords':6s} {'path':14s} {'dtype':7s} {'batch':>5s} {'now ns':>8s} "
+        f"{'scene':9s} {'tableau':20s} {'coords':6s} {'path':14s} {'dtype':7s} {'batch':>5s} {'now ns':>8s} "
         f"{'bef. ns':>8s} {'ratio':>6s} {'cmp now':>7s} {'cmp bef':>7s} {'max diff':>8s}"
     )
     rows = []
-    for tab, coords, path, batch, dtype in cases:
+    for tab, coords, path, batch, dtype, scene in cases:
         steps = int(max(20, min(400, work // batch)))
-        row = compare(before, tab, coords, path, batch, dtype, steps, rounds)
+        row = compare(before, tab, coords, path, batch, dtype, steps, rounds, scene)
         rows.append(row)
         ns, cs = row["ns_per_traj_step"], row["compile_s"]
         print(
-            f"{tab:20s} {coords:6s} {path:14s} {row['dtype']:7s} {batch:5d} {ns['now']:8.0f} {ns['before']:8.0f} "
+            f"{scene:9s} {tab:20s} {coords:6s} {path:14s} {row['dtype']:7s} {batch:5d} {ns['now']:8.0f} {ns['before']:8.0f} "
             f"{row['now_over_before']:6.2f} {cs['now']:7.2f} {cs['before']:7.2f} {row['max_abs_difference']:8.1e}",
             flush=True,
         )

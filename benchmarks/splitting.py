@@ -1,5 +1,6 @@
-"""Accuracy per second of the exact-flow splittings against Dopri8 and a
-hand-written splitting kernel, at the error targets 1e-6, 1e-8 and 1e-10.
+"""Accuracy per second of every family — the exact-flow splittings, PRKMK,
+diffrax and a hand-written splitting kernel — at the error targets 1e-6,
+1e-8 and 1e-10.
 
 Scenes: the free rigid body (paper inertia and momentum, random attitudes)
 and the heavy top (`HeavyTop`, inertia (1, 0.8, 0.4), lever (0.1, 0.2, 0.9)),
@@ -11,7 +12,13 @@ T = 10. Methods:
   hand on the packed (12, batch) array, the axes in the library's order,
   the outer rotations merged, with the same vectorised sine and cosine
   (`prkmk_jax.groups.sincos`) and no other library code;
-- diffrax Dopri8 with constant steps on the embedding ℝ⁹×ℝ³, vmapped.
+- PRKMK: Lobatto IIIA–IIIB 6 with exp and with Cayley coordinates
+  (symplectic, implicit), and the explicit Dormand–Prince 8 tableau (RKMK 8,
+  `pk.dormand_prince_8`) with Cayley coordinates, on the scene's bundle and,
+  for the heavy top, on G×g;
+- diffrax Dopri8 and Tsit5 on the embedding ℝ⁹×ℝ³, vmapped, with constant
+  steps and with a PID controller (swept over rtol = atol; the table gives
+  the most steps any trajectory took).
 
 For each method a sweep of step counts gives the error at T (max over the
 state's entries and the first 32 trajectories, against SciPy DOP853 at
@@ -93,9 +100,9 @@ def _runners(scene_name, n, floor_fractions=pk.kahan_li_8.fractions, dtype=jnp.f
     args = jax.tree.map(lambda a: jnp.asarray(a, dtype), args)
     h = T_END / n
 
-    def library(method):
+    def library(method, on=scene):
         def run(q, p):
-            y = pk.integrate(method, scene, pk.BundleElement(pk.SO3(q), p), 0.0, h, n, args, save_every=n).ys
+            y = pk.integrate(method, on, pk.BundleElement(pk.SO3(q), p), 0.0, h, n, args, save_every=n).ys
             return jnp.concatenate([y.base.matrix[-1].reshape(*q.shape[:-2], 9), y.fiber[-1]], axis=-1)
 
         return run
@@ -132,11 +139,42 @@ def _runners(scene_name, n, floor_fractions=pk.kahan_li_8.fractions, dtype=jnp.f
     }
     out["PRKMK Lobatto 6"] = library(scene.method(pk.lobatto_iiia_iiib6))
     out["PRKMK Lobatto 6 Cayley"] = library(scene.method(pk.lobatto_iiia_iiib6, pk.Cayley()))
+    out["PRKMK DP8 Cayley"] = library(scene.method(pk.dormand_prince_8, pk.Cayley()))
+    if scene_name == "heavy top":  # on G×g the fiber's part of each stage is a sum (Cayley's dcay⁻¹ is I there)
+        on_g_x_g = HeavyTop(pk.DirectProduct(pk.SO3))
+        out["PRKMK DP8 Cayley G×g"] = library(on_g_x_g.method(pk.dormand_prince_8, pk.Cayley()), on_g_x_g)
     out["floor order 8 (hand-written)"] = floor
     out["Dopri8 fixed"] = fixed_step(diffrax.Dopri8())
     out["Tsit5 fixed"] = fixed_step(diffrax.Tsit5())
     return out
 
+
+def _adaptive_runner(scene_name, solver, rtol, dtype=jnp.float64):
+    """diffrax with a PID controller at rtol = atol on the embedding,
+    vmapped; returns (final state, accepted steps of each trajectory)."""
+    scene, args = SCENES[scene_name]
+    args = jax.tree.map(lambda a: jnp.asarray(a, dtype), args)
+
+    def one(q, p):
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(scene.embedding_field),
+            solver,
+            0.0,
+            T_END,
+            None,
+            jnp.concatenate([q.reshape(9), p]),
+            args,
+            saveat=diffrax.SaveAt(t1=True),
+            stepsize_controller=diffrax.PIDController(rtol=rtol, atol=rtol),
+            max_steps=100_000,
+        )
+        return sol.ys[-1], sol.stats["num_accepted_steps"]
+
+    return lambda q, p: jax.vmap(one)(q, p) if q.ndim == 3 else one(q, p)
+
+
+ADAPTIVE = {"Dopri8 PID": diffrax.Dopri8(), "Tsit5 PID": diffrax.Tsit5()}
+"""diffrax with step-size control: their sweeps are over rtol = atol."""
 
 SWEEPS = {
     "splitting Strang": [400, 1600, 6400],
@@ -145,9 +183,13 @@ SWEEPS = {
     "splitting order 8": [16, 20, 24, 28, 32, 40, 48, 56, 64, 80, 96, 128, 160],
     "PRKMK Lobatto 6": [40, 60, 90, 140, 200, 300, 450],
     "PRKMK Lobatto 6 Cayley": [60, 90, 140, 200, 300, 450, 700],
+    "PRKMK DP8 Cayley": [30, 40, 50, 60, 70, 85, 100, 120, 140, 170, 200, 250],
+    "PRKMK DP8 Cayley G×g": [30, 40, 50, 60, 70, 85, 100, 120, 140, 170, 200, 250],
     "floor order 8 (hand-written)": [16, 20, 24, 28, 32, 40, 48, 56, 64, 80, 96, 128, 160],
     "Dopri8 fixed": [25, 35, 42, 50, 60, 70, 85, 100, 120, 140, 170, 200, 250],
     "Tsit5 fixed": [100, 160, 250, 400, 630, 1000, 1600, 2500],
+    "Dopri8 PID": [1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12],
+    "Tsit5 PID": [1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12],
 }
 
 
@@ -170,17 +212,22 @@ def _reference(scene_name, z0s):
     return np.stack([_reference_one(scene_name, tuple(float(v) for v in z0)) for z0 in z0s])
 
 
-SHORT_SWEEPS = {  # --short: the order-8 splittings and the peers, around the step counts that reach the targets
+SHORT_SWEEPS = {  # --short: the order-8 methods and the peers, around the step counts that reach the targets
     "splitting order 8": [32, 48, 64, 96, 128],
     "floor order 8 (hand-written)": [32, 48, 64, 96, 128],
     "Dopri8 fixed": [50, 70, 100, 140, 200],
     "Tsit5 fixed": [250, 400, 630, 1000, 1600, 2500],
+    "PRKMK DP8 Cayley": [50, 70, 100, 140, 200],
+    "PRKMK DP8 Cayley G×g": [50, 70, 100, 140, 200],
+    "Dopri8 PID": [1e-7, 1e-9, 1e-11],
 }
 SHORT_SWEEPS_FLOAT32 = {  # --short --float32: around the float32 targets
     "splitting order 8": [16, 24, 32, 48],
     "floor order 8 (hand-written)": [16, 24, 32, 48],
     "Dopri8 fixed": [25, 35, 50, 70],
     "Tsit5 fixed": [100, 160, 250, 400],
+    "PRKMK DP8 Cayley": [25, 35, 50, 70],
+    "PRKMK DP8 Cayley G×g": [25, 35, 50, 70],
 }
 
 
@@ -215,14 +262,24 @@ def run(regime, scene_name, quick, rounds, short=False, dtype=jnp.float64, paral
     sweeps = SWEEPS if not short else SHORT_SWEEPS if dtype == jnp.float64 else SHORT_SWEEPS_FLOAT32
     # --quick: every code path once; the floor composes Suzuki's 5 steps (quicker to compile).
     fractions = pk.suzuki_5.fractions if quick else pk.kahan_li_8.fractions
+
+    def runner(method, n):
+        if method in ADAPTIVE:
+            return _adaptive_runner(scene_name, ADAPTIVE[method], n, dtype)
+        return _runners(scene_name, n, fractions, dtype)[method]
+
+    offered = set(ADAPTIVE) | set(_runners(scene_name, 1, fractions, dtype))  # G×g runs: the heavy top only
     lowered = {
-        (method, n): functools.partial(jax.jit(_runners(scene_name, n, fractions, dtype)[method]).lower, q, p)
+        (method, n): functools.partial(jax.jit(runner(method, n)).lower, q, p)
         for method, sweep in sweeps.items()
-        if not (quick and method in QUICK_SKIPS) and method not in without and (not only or method in only)
+        if method in offered and not (quick and method in QUICK_SKIPS) and method not in without and (not only or method in only)
         for n in (sweep[:1] if quick else sweep)
     }
     for (method, n), (compiled, compile_s) in _compiled(lowered, parallel_compile).items():
-        z = np.asarray(compiled(q, p)).reshape(-1, 12)[: len(checked)]
+        out = compiled(q, p)
+        adaptive = method in ADAPTIVE  # n is rtol; the steps are the most any trajectory took
+        z, steps = (out[0], int(np.max(out[1]))) if adaptive else (out, n)
+        z = np.asarray(z).reshape(-1, 12)[: len(checked)]
         error = float(np.max(np.abs(z - reference)))
         wall_s, _ = C.median_time(compiled, q, p, repeats=3)  # the chart's point; the table times the picks interleaved
         rows.append(
@@ -230,18 +287,22 @@ def run(regime, scene_name, quick, rounds, short=False, dtype=jnp.float64, paral
                 regime=regime,
                 scene=scene_name,
                 method=method,
-                steps=n,
+                steps=steps,
                 error=error,
                 wall_s=wall_s,
                 compile_s=compile_s,
                 dtype=jnp.dtype(dtype).name,
             )
         )
+        if adaptive:
+            rows[-1]["rtol"] = n
         compiling = "" if compile_s is None else f" compile {compile_s:5.1f} s"
-        print(f"{scene_name:9s} {regime:6s} {method:30s} n={n:5d} error {error:8.1e} {wall_s * 1e3:9.2f} ms{compiling}", flush=True)
+        setting = f"rtol={n:.0e}" if adaptive else f"n={n:5d}"
+        timing = f"steps {steps:5d} error {error:8.1e} {wall_s * 1e3:9.2f} ms{compiling}"
+        print(f"{scene_name:9s} {regime:6s} {method:30s} {setting} {timing}", flush=True)
         for target in targets:
             if error <= target and (method, target) not in chosen:
-                chosen[(method, target)] = (n, compiled, rows[-1])
+                chosen[(method, target)] = (steps, compiled, rows[-1])
     for target in targets:
         picks = {m: v for (m, t), v in chosen.items() if t == target}
         if not picks:

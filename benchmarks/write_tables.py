@@ -20,7 +20,8 @@ Tables:
 
 - `accuracy`: for each scene, batch, device and dtype, and each error
   target, the fastest run of the library (a splitting or PRKMK) against the
-  fastest of diffrax's (Dopri8 and Tsit5 with constant steps), their
+  fastest of diffrax's (Dopri8 and Tsit5 with constant steps or a PID
+  controller, whichever reached the target sooner), their
   ratio, and the library's order-8 splitting per step over the
   hand-written kernel's (the floor of that family: the same arithmetic
   with no library code around it).
@@ -49,7 +50,7 @@ DOCUMENTS = {
 FLOOR = "floor order 8 (hand-written)"
 FAMILIES = (("splittings", "splitting"), ("PRKMK", "PRKMK"))
 """The library's families: name, and the prefix of their methods in the results."""
-DIFFRAX = ("Dopri8 fixed", "Tsit5 fixed")
+DIFFRAX = ("Dopri8 fixed", "Tsit5 fixed", "Dopri8 PID", "Tsit5 PID")
 
 
 def is_library(method: str) -> bool:
@@ -80,7 +81,7 @@ def entries_of(data: dict, source: str) -> list[dict]:
             for r in data["rows"]:
                 timed = r.get("wall_s_at_target", {})
                 if (r["scene"], r["regime"], r.get("dtype", "float64")) == (scene, regime, dtype) and label in timed:
-                    runs[r["method"]] = (r["steps"], timed[label])
+                    runs[r["method"]] = (r["steps"], timed[label], r.get("rtol"))
             entries.append(
                 dict(source=source, scene=scene, regime=regime, dtype=dtype, device=device, target=target, runs=runs, families=families)
             )
@@ -99,12 +100,16 @@ def _batch(regime: str) -> str:
 
 
 def _fastest(runs: dict, keep) -> tuple[str, int, float] | None:
-    found = [(m, n, s) for m, (n, s) in runs.items() if keep(m)]
+    found = [(m, n, s, rtol) for m, (n, s, rtol) in runs.items() if keep(m)]
     return min(found, key=lambda e: e[2]) if found else None
 
 
 def _cell(entry) -> str:
-    return "not reached | –" if entry is None else f"{entry[0]} (n = {entry[1]}) | {entry[2] * 1e3:.2f}"
+    if entry is None:
+        return "not reached | –"
+    method, steps, seconds, rtol = entry
+    setting = f"n = {steps}" if rtol is None else f"rtol = {rtol:.0e}, {steps} steps"
+    return f"{method} ({setting}) | {seconds * 1e3:.2f}"
 
 
 def accuracy_table(entries: list[dict]) -> str:
@@ -131,7 +136,7 @@ def decision_table(entries: list[dict]) -> str:
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for e in entries:
-        ranked = sorted(((m, n, s) for m, (n, s) in e["runs"].items() if m != FLOOR), key=lambda r: r[2])
+        ranked = sorted(((m, n, s, rtol) for m, (n, s, rtol) in e["runs"].items() if m != FLOOR), key=lambda r: r[2])
         first = _cell(ranked[0]) if ranked else "none of the runs reached it | –"
         second = _cell(ranked[1]) if len(ranked) > 1 else "– | –"
         where = f"{e['scene']} | {_batch(e['regime'])} | {e['device']}, {e['dtype']} | {e['families']}"

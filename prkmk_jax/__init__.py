@@ -110,6 +110,12 @@ from .tableaus import (
     PartitionedTableau as PartitionedTableau,
 )
 from .tableaus import (
+    classical_rk4 as classical_rk4,
+)
+from .tableaus import (
+    dormand_prince_8 as dormand_prince_8,
+)
+from .tableaus import (
     lobatto_iiia_iiib4 as lobatto_iiia_iiib4,
 )
 from .tableaus import (

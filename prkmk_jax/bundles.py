@@ -362,7 +362,7 @@ class AbstractSemidirect(AbstractBundle):
         w = self._cayley_fiber(u, v)
         x_v = self.quadratic_base.dcayley_inv(u, x)
         if self.trivialization == "left":
-            z = self.quadratic_base.cayley(-u).adjoint(y)  # cay(−u) = cay(u)⁻¹
+            z = self.quadratic_base.cayley_adjoint(-u, y)  # Ad_{cay(−u)} = Ad_{cay(u)⁻¹}, without forming the matrix
             y_v = z + 0.5 * br(u, z) + 0.5 * br(x_v, w)
         else:
             z = y + br(x, w)

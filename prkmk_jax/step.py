@@ -34,6 +34,7 @@ from jaxtyping import PyTree
 
 from .bundles import AbstractBundle, AlgebraPair, BundleElement
 from .coordinates import AbstractCoordinates, Exp
+from .exact_flows import is_vectorised
 from .method import RESULTS, AbstractFieldOnBundle, AbstractMethod, Iterations, Time, VectorField, first_failure, flag_nonfinite
 from .stage_plan import COUPLED, Explicit, plan_stages, stage_dependence
 from .tableaus import PartitionedTableau, stormer_verlet
@@ -67,6 +68,18 @@ class PRKMK(AbstractMethod):
       `"tableau"` assumes every slope depends on the whole stage point, so
       the A matrices alone decide. Both give the same trajectory to the
       stage tolerance.
+    - `explicit_stages`: how an explicit tableau (both A matrices strictly
+      lower triangular, e.g. `dormand_prince_8`) is laid out in the
+      program. `"unrolled"`: every stage written out, which runs fastest for
+      one trajectory. `"loop"`: one stage in a `lax.fori_loop` over the
+      stages, the slopes in one array: XLA fuses each slope's arithmetic
+      into every later stage that reads it, so an unrolled many-stage step
+      on a batch recomputes early stages many times over, and the loop
+      computes each once. `"auto"` (default) takes the loop for a state
+      carrying at least `exact_flows.VECTORISED_BATCH` trajectories, the
+      unrolled stages otherwise (under `jax.vmap` the step sees one
+      trajectory: pass `"loop"` there). Both give the same trajectory up
+      to rounding.
     """
 
     bundle: AbstractBundle
@@ -78,6 +91,7 @@ class PRKMK(AbstractMethod):
     max_iterations: int = eqx.field(static=True, default=100)
     root_finder: Any = eqx.field(static=True, default=None)
     coupling: Literal["traced", "tableau"] = eqx.field(static=True, default="traced")
+    explicit_stages: Literal["auto", "unrolled", "loop"] = eqx.field(static=True, default="auto")
 
     def __check_init__(self):
         if not isinstance(self.bundle, AbstractBundle):
@@ -100,6 +114,12 @@ class PRKMK(AbstractMethod):
             raise TypeError("root_finder must be an optimistix fixed-point solver or root finder.")
         if self.coupling not in ("traced", "tableau"):
             raise ValueError(f"coupling must be 'traced' (read from the field's program) or 'tableau', got {self.coupling!r}.")
+        if self.explicit_stages not in ("auto", "unrolled", "loop"):
+            raise ValueError(f"explicit_stages must be 'auto', 'unrolled' or 'loop', got {self.explicit_stages!r}.")
+        if self.explicit_stages == "loop" and not self.tableau.is_explicit:
+            raise ValueError(
+                f"explicit_stages='loop' needs an explicit tableau (A strictly lower triangular in both parts); {self.tableau.name} is not."
+            )
         self.coordinates.check_bundle(self.bundle)
 
     @property
@@ -206,11 +226,15 @@ class PRKMK(AbstractMethod):
             # None: the stage point then skips the fiber part of f(U).
             return self.slope_at(vector_field, tt, (zeros[0] if u is None else u, v), y, args)
 
+        plan = self.stage_plan(vector_field, t, y, args)
+        if self._stages_in_loop(zeros):
+            first, second = self._explicit_slopes_in_loop(vector_field, stage_slope, plan, t, y, dt, args, zeros)
+            return self._finish_step(dt, y, first, second, zeros, RESULTS.successful, jnp.array(0, jnp.int32))
         slopes: list[list] = [[None] * tab.num_stages, [None] * tab.num_stages]
         result = RESULTS.successful
         iterations = jnp.array(0, jnp.int32)
         start = None
-        for part in self.stage_plan(vector_field, t, y, args):
+        for part in plan:
             if isinstance(part, Explicit):
                 pair = stage_slope(part.stage, *slopes)
                 for c in part.components:
@@ -235,16 +259,54 @@ class PRKMK(AbstractMethod):
             iterations = iterations + n
             for (i, c), value in zip(part.slopes, block):
                 slopes[c][i] = value
-        # A slope the plan never computed is identically zero (L when η ≡ 0).
-        first = [zeros[0] if k is None else k for k in slopes[0]]
-        second = [zeros[1] if w is None else w for w in slopes[1]]
+        return self._finish_step(dt, y, slopes[0], slopes[1], zeros, result, iterations)
 
-        u_next = static_combination(dt, tab.b_first, slopes[0], zeros[0])
-        v_next = static_combination(dt, tab.b_second, slopes[1], zeros[1])
+    def _finish_step(self, dt, y, first, second, zeros, result, iterations):
+        """y_{n+1} = f(h Σ bᵢ (Kᵢ, Lᵢ))⊙yₙ and what `step_with_stages` returns;
+        a slope None is one the plan never computed, identically zero (L when
+        η ≡ 0), and is left out of the sums."""
+        tab = self.tableau
+        u_next = static_combination(dt, tab.b_first, first, zeros[0])
+        v_next = static_combination(dt, tab.b_second, second, zeros[1])
         u_next = zeros[0] if u_next is None else u_next
         y_next = self.advance((u_next, v_next), y)
         increment = (u_next, zeros[1] if v_next is None else v_next)
-        return y_next, increment, flag_nonfinite(result, y_next), iterations, tuple(zip(first, second))
+        stages = tuple(zip(*([z if k is None else k for k in slopes] for slopes, z in zip((first, second), zeros))))
+        return y_next, increment, flag_nonfinite(result, y_next), iterations, stages
+
+    def _stages_in_loop(self, zeros) -> bool:
+        """Whether this step evaluates its (explicit) stages in a loop (see
+        `explicit_stages`)."""
+        if self.explicit_stages != "auto":
+            return self.explicit_stages == "loop"
+        batch_shape = zeros[0].shape[: zeros[0].ndim - self.bundle.base.algebra_ndim]
+        return self.tableau.is_explicit and is_vectorised(batch_shape)
+
+    def _explicit_slopes_in_loop(self, vector_field, stage_slope, plan, t, y, dt, args, zeros):
+        """The slopes of an explicit tableau, stage after stage in a
+        `lax.fori_loop`: stage i reads the rows A¹ᵢ, A²ᵢ and the slopes found
+        so far (zeros in the later entries, which the strictly lower
+        triangular rows do not reach). Returns the two lists of slopes,
+        None for a component the plan never computes (L when η ≡ 0)."""
+        tab = self.tableau
+        dtype = zeros[0].dtype
+        computed = {c for part in plan for c in part.components}
+        first_slope = stage_slope(0, [None] * tab.num_stages, [None] * tab.num_stages)
+        buffers = []
+        for c, zero in enumerate(zeros):
+            buffer = jnp.zeros((tab.num_stages, *zero.shape), dtype)
+            buffers.append(buffer.at[0].set(first_slope[c]) if c in computed else buffer)
+        a_first, a_second, c_first = (jnp.asarray(x, dtype) for x in (tab.a_first, tab.a_second, tab.c_first))
+
+        def one_stage(i, buffers):
+            first, second = buffers
+            u = dt * jnp.tensordot(a_first[i], first, axes=1)
+            v = dt * jnp.tensordot(a_second[i], second, axes=1) if 1 in computed else None
+            pair = self.slope_at(vector_field, t + c_first[i] * dt, (u, v), y, args)
+            return tuple(b.at[i].set(p) if c in computed else b for c, (b, p) in enumerate(zip(buffers, pair)))
+
+        buffers = jax.lax.fori_loop(1, tab.num_stages, one_stage, tuple(buffers))
+        return tuple(list(b) if c in computed else [None] * tab.num_stages for c, b in enumerate(buffers))
 
     def stage_plan(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None):
         """The order in which this step finds its stage slopes at (t, y)
@@ -300,14 +362,23 @@ def _check_pairs(name, pairs, zeros, count=None):
 def static_combination(dt, coefficients, slopes, zero):
     """dt·Σ_j coefficients[j]·slopes[j] over the nonzero (static) coefficients
     and the slopes that are not None (zero, or not needed: see `stage_plan`),
-    or None when no term is left."""
+    or None when no term is left.
+
+    Three terms or more are summed as one contraction of the stacked slopes:
+    XLA then computes each slope once, where a chain of multiply-adds lets it
+    fuse (and so recompute) each slope's whole arithmetic into every stage
+    that sums it (`benchmarks/against_revision.py`, `benchmarks/stage_layout.py`)."""
+    terms = [(c, slope) for c, slope in zip(coefficients, slopes) if c != 0 and slope is not None]
+    if not terms:
+        return None
+    if len(terms) >= 3:
+        weights = jnp.asarray([c for c, _ in terms], zero.dtype)
+        return dt * jnp.tensordot(weights, jnp.stack([slope for _, slope in terms]), axes=1)
     acc = None
-    for c, slope in zip(coefficients, slopes):
-        if c == 0 or slope is None:
-            continue
+    for c, slope in terms:
         term = slope if c == 1 else jnp.asarray(c, zero.dtype) * slope
         acc = term if acc is None else acc + term
-    return None if acc is None else dt * acc
+    return dt * acc
 
 
 def _fixed_point_iteration(fn, guess, rtol, atol, max_iterations, dtype):

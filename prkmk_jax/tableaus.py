@@ -10,6 +10,7 @@ import dataclasses
 import functools
 from fractions import Fraction as F
 
+import diffrax
 import numpy as np
 
 
@@ -27,16 +28,26 @@ def bicoloured_trees(order: int) -> tuple:
 
 
 @functools.cache
-def _forests(size: int, max_tree) -> tuple:
-    """Multisets of trees of total `size`, as non-increasing tuples bounded by `max_tree`."""
+def monochrome_trees(order: int) -> tuple:
+    """The rooted trees with `order` nodes, every node of colour 0 (the
+    conditions of a Runge–Kutta method that is not partitioned)."""
+    if order == 1:
+        return ((0, ()),)
+    return tuple((0, forest) for forest in _forests(order - 1, None, monochrome_trees))
+
+
+@functools.cache
+def _forests(size: int, max_tree, trees=bicoloured_trees) -> tuple:
+    """Multisets of trees (from `trees`) of total `size`, as non-increasing
+    tuples bounded by `max_tree`."""
     if size == 0:
         return ((),)
     out = []
     for first_size in range(1, size + 1):
-        for tree in bicoloured_trees(first_size):
+        for tree in trees(first_size):
             if max_tree is not None and tree > max_tree:
                 continue
-            for rest in _forests(size - first_size, tree):
+            for rest in _forests(size - first_size, tree, trees):
                 out.append((tree,) + rest)
     return tuple(out)
 
@@ -104,18 +115,59 @@ class PartitionedTableau:
                 f"tree {failed[0][0]} gives {failed[0][1]:.3e} instead of {failed[0][2]:.3e}."
             )
 
+    @classmethod
+    def unpartitioned(cls, name: str, a, b, c, order: int, tolerance: float = 1e-12) -> "PartitionedTableau":
+        """One Runge–Kutta method (a, b, c) for both components: with it the
+        PRKMK step is the RKMK method of Munthe-Kaas (BIT 38, 1998) on the
+        bundle group."""
+        return cls(name, a, b, c, a, b, c, order, tolerance)
+
+    @classmethod
+    def from_butcher(cls, name: str, tableau, order: int) -> "PartitionedTableau":
+        """The explicit method of a `diffrax.ButcherTableau` (`c`, `a_lower`,
+        `b_sol`) for both components, without trailing stages that carry no
+        weight and that no weighted stage reads (the first-same-as-last stage
+        diffrax evaluates for its error estimate and interpolation)."""
+        if getattr(tableau, "a_diagonal", None) is not None:
+            raise ValueError(f"{name}: only explicit Butcher tableaus convert (this one has a diagonal).")
+        stages = len(tableau.b_sol)
+        a = np.zeros((stages, stages))
+        for i, row in enumerate(tableau.a_lower):
+            a[i + 1, : len(row)] = row
+        b = np.asarray(tableau.b_sol, dtype=np.float64)
+        c = np.concatenate([[0.0], np.asarray(tableau.c, dtype=np.float64)])
+        kept = stages
+        while kept > 1 and b[kept - 1] == 0 and not a[:kept, kept - 1].any():
+            kept -= 1
+        return cls.unpartitioned(name, a[:kept, :kept], b[:kept], c[:kept], order)
+
     @property
     def num_stages(self) -> int:
         return self.b_first.shape[0]
 
+    @property
+    def is_explicit(self) -> bool:
+        """Whether both A matrices are strictly lower triangular: every stage
+        reads only the stages before it."""
+        return not (np.triu(self.a_first).any() or np.triu(self.a_second).any())
+
+    @property
+    def is_partitioned(self) -> bool:
+        """Whether the two methods differ (otherwise one Runge–Kutta method
+        advances both components)."""
+        return not all(np.array_equal(getattr(self, f"{x}_first"), getattr(self, f"{x}_second")) for x in "abc")
+
     def violated_conditions(self, order: int) -> list:
         """(tree, b·ψ(t), 1/γ(t)) for each bicoloured tree of order ≤ `order`
-        whose condition b^{colour(root)}·ψ(t) = 1/γ(t) fails."""
+        whose condition b^{colour(root)}·ψ(t) = 1/γ(t) fails. When the two
+        methods are one, a tree's condition does not depend on its colours,
+        so the trees of one colour suffice."""
         a = (self.a_first, self.a_second)
         b = (self.b_first, self.b_second)
+        trees = bicoloured_trees if self.is_partitioned else monochrome_trees
         failed = []
         for n in range(1, order + 1):
-            for tree in bicoloured_trees(n):
+            for tree in trees(n):
                 value = b[tree[0]] @ _internal_weight(tree, a)
                 target = 1.0 / _gamma(tree)
                 if abs(value - target) > self.tolerance:
@@ -229,4 +281,27 @@ IIIA and IIIB coefficients of Hairer & Wanner, Solving ODEs II, §IV.5). Its
 order conditions (every bicoloured tree up to order 6) are checked on
 construction, like every tableau's."""
 
+classical_rk4 = PartitionedTableau.unpartitioned(
+    "classical Runge–Kutta 4",
+    a=_f([["0", "0", "0", "0"], ["1/2", "0", "0", "0"], ["0", "1/2", "0", "0"], ["0", "0", "1", "0"]]),
+    b=_f(["1/6", "1/3", "1/3", "1/6"]),
+    c=_f(["0", "1/2", "1/2", "1"]),
+    order=4,
+)
+"""The classical explicit method of order 4 on both components (RKMK 4).
+Explicit, neither symplectic nor symmetric; the step stays on the group."""
+
+dormand_prince_8 = PartitionedTableau.from_butcher("Dormand–Prince 8 (RKMK)", diffrax.Dopri8.tableau, order=8)
+"""The explicit 13-stage method of order 8 of Prince & Dormand (J. Comput.
+Appl. Math. 7, 1981), with the coefficients `diffrax.Dopri8` uses, on both
+components: RKMK 8. Explicit, so its cost per step is fixed (no stage
+iteration); neither symplectic nor symmetric, so the energy error grows
+with time, but the step stays on the group (QᵀQ = I and coadjoint orbits
+to round-off). With `Exp()` the dexp⁻¹ series keeps the terms up to ad⁶
+(`series.default_truncation`); `Cayley()` is exact and cheaper."""
+
 ALL_TABLEAUS = (symplectic_euler, symplectic_euler_adjoint, stormer_verlet, stormer_verlet_adjoint, lobatto_iiia_iiib4, lobatto_iiia_iiib6)
+"""The symplectic pairs."""
+
+EXPLICIT_TABLEAUS = (classical_rk4, dormand_prince_8)
+"""The explicit methods (RKMK)."""

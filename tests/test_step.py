@@ -100,12 +100,18 @@ def _classical_prk(tab, q, p, t, h, args, iters=200):
     return q + h * tab.b_first @ k, p + h * tab.b_second @ l_slopes
 
 
-@pytest.mark.parametrize("tab", pk.tableaus.ALL_TABLEAUS, ids=lambda t: t.name)
+LAYOUTS = [(tab, "auto") for tab in pk.tableaus.ALL_TABLEAUS] + [
+    (tab, layout) for tab in pk.tableaus.EXPLICIT_TABLEAUS for layout in ("unrolled", "loop")
+]
+
+
+@pytest.mark.parametrize("tab,layout", LAYOUTS, ids=lambda x: getattr(x, "name", x))
 @pytest.mark.parametrize("coords", [pk.Exp(), pk.Cayley()], ids=["exp", "cayley"])
-def test_classical_prk_on_vector_space(tab, coords):
-    """On Cartesian(ℝ²) the PRKMK step is exactly Algorithm 4.1."""
+def test_classical_prk_on_vector_space(tab, layout, coords):
+    """On Cartesian(ℝ²) the PRKMK step is exactly Algorithm 4.1 (the
+    explicit tableaus with their stages unrolled and in a loop)."""
     q0, p0 = np.array([1.2, -0.4]), np.array([0.3, 0.8])
-    method = pk.PRKMK(pk.Cartesian(pk.VectorSpace), coords, tab, form="space")
+    method = pk.PRKMK(pk.Cartesian(pk.VectorSpace), coords, tab, form="space", explicit_stages=layout)
     y = pk.BundleElement(pk.VectorSpace(jnp.asarray(q0)), pk.VectorSpace(jnp.asarray(p0)))
     y1, result, _ = method.step(_pendulum, 0.3, y, 0.2, 0.7)
     assert result == pk.RESULTS.successful

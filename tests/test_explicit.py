@@ -1,0 +1,186 @@
+"""Explicit tableaus (RKMK): classical RK 4 and Dormand–Prince 8 on the
+bundle groups. Their order on the free body and the heavy top against DOP853
+references, the same step with the stages unrolled and in a loop, what the
+step keeps (the group, the coadjoint orbit), gradients against finite
+differences, vmap, diffeqsolve and float32."""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import prkmk_jax as pk
+from helpers import INERTIA, empirical_order, final_state_by_steps, initial_state, max_leaf_difference, rigid_body_field, scene_reference
+from prkmk_jax.scenes import FreeRigidBody, HeavyTop, TopParameters, random_rotation
+from prkmk_jax.stage_plan import Explicit
+
+TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
+TOP_Y0 = pk.BundleElement(pk.SO3(jnp.asarray(random_rotation(5))), jnp.array([0.3, -0.4, 1.5]))
+TOPS = {"cotangent": HeavyTop(), "direct product": HeavyTop(pk.DirectProduct(pk.SO3))}
+COORDINATES = {"cayley": pk.Cayley(), "exp": pk.Exp()}
+# (t_end, step counts) where the errors run from ~1e-4 (RK 4) or ~1e-7 (DP 8)
+# down to ~1e-12, above the references' 1e-13.
+GRIDS = {4: (2.0, (20, 40, 80, 160)), 8: (1.0, (4, 6, 8, 12))}
+# Dormand–Prince 8 reaches its order from above: at errors the float64
+# references resolve, its h⁹ term still dominates with Cayley (local slopes
+# 9.7 → 8.9 on the free body, 9.4 → 8.7 on the heavy top on T*SO(3), before
+# round-off), so its fitted slope may lie up to 1.5 above 8; it is never
+# below (its conditions at order 9 fail: `test_the_tableaus`). RK 4 is at its
+# order (±0.2).
+ABOVE = {4: 0.2, 8: 1.5}
+
+
+def _batch_state(size, seed=3):
+    rng = np.random.default_rng(seed)
+    qs = np.stack([random_rotation(seed * 1000 + k) for k in range(size)])
+    return pk.BundleElement(pk.SO3(jnp.asarray(qs)), jnp.asarray(np.array([0.3, -0.4, 1.5]) * (1 + 0.1 * rng.normal(size=(size, 3)))))
+
+
+def _assert_order(errors, steps, t_end, order):
+    slope = np.polyfit(np.log(t_end / np.asarray(steps)), np.log(errors), 1)[0]
+    assert order - 0.2 <= slope <= order + ABOVE[order], (slope, errors)
+
+
+def test_the_tableaus():
+    for tab in pk.tableaus.EXPLICIT_TABLEAUS:
+        assert tab.is_explicit and not tab.is_partitioned and not tab.is_symplectic()
+        assert tab.violated_conditions(tab.order) == [] and tab.violated_conditions(tab.order + 1) != []
+    assert pk.dormand_prince_8.num_stages == 13  # diffrax's 14th (FSAL) stage carries no weight
+    assert not pk.lobatto_iiia_iiib6.is_explicit and pk.lobatto_iiia_iiib6.is_partitioned
+
+
+def test_a_tableau_with_a_diagonal_does_not_convert():
+    with pytest.raises(ValueError, match="only explicit"):
+        pk.PartitionedTableau.from_butcher("Kvaerno 3", diffrax.Kvaerno3.tableau, order=3)
+
+
+@pytest.mark.parametrize("tab", pk.tableaus.EXPLICIT_TABLEAUS, ids=lambda t: t.name)
+@pytest.mark.parametrize("coords", COORDINATES.values(), ids=list(COORDINATES))
+def test_order_on_the_free_body(tab, coords):
+    t_end, steps = GRIDS[tab.order]
+    method = pk.PRKMK(pk.Cotangent(pk.SO3), coords, tab, form="body")
+    _, errors = empirical_order(method, t_end=t_end, steps=steps)
+    _assert_order(errors, steps, t_end, tab.order)
+
+
+@pytest.mark.parametrize("tab", pk.tableaus.EXPLICIT_TABLEAUS, ids=lambda t: t.name)
+@pytest.mark.parametrize("coords", COORDINATES.values(), ids=list(COORDINATES))
+@pytest.mark.parametrize("top", TOPS.values(), ids=list(TOPS))
+def test_order_on_the_heavy_top(tab, coords, top):
+    t_end, steps = GRIDS[tab.order]
+    reference = scene_reference(top, TOP_Y0, t_end, TOP_ARGS)[-1]
+    final_state = final_state_by_steps(top.method(tab, coords), top)
+    errors = [np.max(np.abs(np.asarray(top.to_embedding(final_state(TOP_Y0, t_end / n, n, TOP_ARGS)[0])) - reference)) for n in steps]
+    _assert_order(errors, steps, t_end, tab.order)
+
+
+def _program_has_a_loop(method, field, y, args):
+    jaxpr = str(jax.make_jaxpr(lambda y: method.step(field, 0.0, y, 0.1, args)[0])(y))
+    return "while" in jaxpr or "scan" in jaxpr
+
+
+@pytest.mark.parametrize("top", TOPS.values(), ids=list(TOPS))
+@pytest.mark.parametrize("coords", COORDINATES.values(), ids=list(COORDINATES))
+def test_stages_in_a_loop_give_the_unrolled_step(top, coords):
+    y0 = _batch_state(20)
+    runs = {}
+    for layout in ("unrolled", "loop", "auto"):
+        method = pk.PRKMK(top.bundle, coords, pk.dormand_prince_8, form="body", explicit_stages=layout)
+        runs[layout] = jax.jit(lambda y, m=method: pk.integrate(m, top, y, 0.0, 0.1, 30, TOP_ARGS, save_every=30).ys)(y0)
+    assert max_leaf_difference(runs["loop"], runs["unrolled"]) < 1e-13
+    assert max_leaf_difference(runs["auto"], runs["loop"]) == 0.0  # 20 trajectories: auto takes the loop
+
+
+def test_auto_layout_follows_the_batch():
+    top = TOPS["direct product"]
+    auto = top.method(pk.dormand_prince_8, pk.Cayley())
+    assert all(isinstance(p, Explicit) for p in auto.stage_plan(top, 0.0, TOP_Y0, TOP_ARGS))
+    assert not _program_has_a_loop(auto, top, TOP_Y0, TOP_ARGS)
+    assert _program_has_a_loop(auto, top, _batch_state(pk.exact_flows.VECTORISED_BATCH), TOP_ARGS)
+    assert not _program_has_a_loop(auto, top, _batch_state(pk.exact_flows.VECTORISED_BATCH - 1), TOP_ARGS)
+    forced = pk.PRKMK(top.bundle, pk.Cayley(), pk.dormand_prince_8, form="body", explicit_stages="loop")
+    assert _program_has_a_loop(forced, top, TOP_Y0, TOP_ARGS)
+
+
+def test_layout_errors():
+    with pytest.raises(ValueError, match="explicit_stages must be"):
+        pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), pk.dormand_prince_8, explicit_stages="scan")  # pyright: ignore[reportArgumentType]
+    with pytest.raises(ValueError, match="needs an explicit tableau"):
+        pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), pk.lobatto_iiia_iiib6, explicit_stages="loop")
+
+
+@pytest.mark.parametrize("layout", ["unrolled", "loop"])
+def test_the_free_body_stays_on_the_group_and_its_coadjoint_orbit(layout):
+    """Not symplectic: the energy drifts. On T*SO(3) the fiber moves by Ad*
+    alone (η ≡ 0), so |Π| is kept to round-off, and Q stays orthogonal, over
+    T = 1000 (10⁴ steps)."""
+    scene = FreeRigidBody()
+    method = pk.PRKMK(scene.bundle, pk.Cayley(), pk.dormand_prince_8, form="body", explicit_stages=layout)
+    y0 = initial_state(scene.bundle)
+    ys = pk.integrate(method, scene, y0, 0.0, 0.1, 10_000, jnp.asarray(INERTIA), save_every=100).ys
+    norms = jnp.linalg.norm(ys.fiber, axis=-1)
+    assert float(jnp.max(jnp.abs(norms - norms[0]))) < 1e-13 * float(norms[0]) * 50
+    assert float(jnp.max(pk.diagnostics.orthogonality_defect(ys.base.matrix))) < 1e-13
+
+
+def _final_momentum_projection(method, field, y0, args, through):
+    if through == "integrate":
+        y = pk.integrate(method, field, y0, 0.0, 0.1, 20, args, save_every=20).ys
+        fiber = y.fiber[-1]
+    else:
+        sol = diffrax.diffeqsolve(pk.PRKMKTerm(field), pk.PRKMKSolver(method), 0.0, 2.0, 0.1, y0, args)
+        fiber = sol.ys.fiber[-1]
+    return jnp.sum(fiber * jnp.array([0.2, -0.5, 1.0]))
+
+
+@pytest.mark.parametrize("through", ["integrate", "diffeqsolve"])
+@pytest.mark.parametrize("batch", [None, 16], ids=["one", "batch 16 (loop)"])
+def test_gradient_in_the_lever_matches_finite_differences(through, batch):
+    top = TOPS["cotangent"]
+    method = top.method(pk.dormand_prince_8, pk.Cayley())
+    y0 = TOP_Y0 if batch is None else _batch_state(batch)
+
+    @jax.jit
+    def loss(lever):
+        return _final_momentum_projection(method, top, y0, TopParameters(TOP_ARGS.inertia, lever), through)
+
+    lever = TOP_ARGS.lever
+    grad = jax.grad(loss)(lever)
+    step = 1e-6
+    fd = np.array([(loss(lever + step * e) - loss(lever - step * e)) / (2 * step) for e in np.eye(3)])
+    np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-8)
+
+
+def test_vmap_of_diffeqsolve_equals_the_batch_in_the_state():
+    top = TOPS["direct product"]
+    y0 = _batch_state(8)
+
+    def solve(method, y):
+        return diffrax.diffeqsolve(pk.PRKMKTerm(top), pk.PRKMKSolver(method), 0.0, 2.0, 0.1, y, TOP_ARGS).ys
+
+    loop = pk.PRKMK(top.bundle, pk.Cayley(), pk.dormand_prince_8, form="body", explicit_stages="loop")
+    vmapped = jax.jit(jax.vmap(lambda y: solve(top.method(pk.dormand_prince_8, pk.Cayley()), y)))(y0)
+    in_state = jax.jit(lambda y: solve(loop, y))(y0)
+    assert max_leaf_difference(jax.tree.map(lambda a: a[:, -1], vmapped), jax.tree.map(lambda a: a[-1], in_state)) < 1e-13
+
+
+@pytest.mark.parametrize("layout", ["unrolled", "loop"])
+def test_float32(layout):
+    top = TOPS["cotangent"]
+    method = pk.PRKMK(top.bundle, pk.Cayley(), pk.dormand_prince_8, form="body", explicit_stages=layout)
+    y0 = jax.tree.map(lambda a: a.astype(jnp.float32), _batch_state(4))
+    args = jax.tree.map(lambda a: a.astype(jnp.float32), TOP_ARGS)
+    ys = pk.integrate(method, top, y0, 0.0, 0.1, 100, args, save_every=100).ys
+    assert ys.fiber.dtype == jnp.float32
+    y64 = pk.integrate(top.method(pk.dormand_prince_8, pk.Cayley()), top, _batch_state(4), 0.0, 0.1, 100, TOP_ARGS, save_every=100).ys
+    assert max_leaf_difference(jax.tree.map(lambda a: a.astype(jnp.float64), ys), y64) < 1e-4
+    assert float(jnp.max(pk.diagnostics.orthogonality_defect(ys.base.matrix))) < 1e-6
+
+
+@pytest.mark.parametrize("tab", pk.tableaus.EXPLICIT_TABLEAUS, ids=lambda t: t.name)
+def test_explicit_tableaus_need_no_iteration(tab):
+    field = rigid_body_field(pk.Cotangent(pk.SO3), "body")
+    method = pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), tab, form="body")
+    _, result, iterations = method.step(field, 0.0, initial_state(pk.Cotangent(pk.SO3)), 0.1, jnp.asarray(INERTIA))
+    assert result == pk.RESULTS.successful and int(iterations) == 0
