@@ -118,7 +118,13 @@ def compare(before, tableau, coordinates, path, batch, dtype, steps, rounds, sce
 
 
 def main(argv=None):
-    args, out = C.cli(__doc__, argv, lambda p: (p.add_argument("--rev", default="HEAD"), p.add_argument("--rounds", type=int, default=9)))
+    def arguments(parser):
+        parser.add_argument("--rev", default="HEAD")
+        parser.add_argument("--rounds", type=int, default=9)
+        parser.add_argument("--scene", default="", help="run only the cases of this scene ('free body' or 'heavy top')")
+        parser.add_argument("--name", default="against_revision", help="stem of the results file")
+
+    args, out = C.cli(__doc__, argv, arguments)
     before, sha = import_revision(args.rev)
     if args.quick:
         cases = [
@@ -150,6 +156,7 @@ def main(argv=None):
             for batch in (1, 1024)
         ]
         rounds, work = args.rounds, 200_000
+    cases = [case for case in cases if not args.scene or case[-1] == args.scene]
     print(f"now: working tree; before: {args.rev} ({sha})")
     print(
         f"{'scene':9s} {'tableau':20s} {'coords':6s} {'path':14s} {'dtype':7s} {'batch':>5s} {'now ns':>8s} "
@@ -166,7 +173,7 @@ def main(argv=None):
             f"{row['now_over_before']:6.2f} {cs['now']:7.2f} {cs['before']:7.2f} {row['max_abs_difference']:8.1e}",
             flush=True,
         )
-    with open(out / "against_revision.json", "w") as f:
+    with open(out / f"{args.name}.json", "w") as f:
         json.dump(dict(machine=C.machine(), rev=args.rev, sha=sha, rounds=rounds, rows=rows), f, indent=1)
 
 

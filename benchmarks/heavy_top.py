@@ -13,6 +13,10 @@ embedding ℝ⁹×ℝ³ through `HeavyTop.embedding_field`, and SciPy DOP853.
 * Error against cost, T = 10: the largest entry error of (Q, Π) at T against
   DOP853 at rtol = atol = 1e-13, and the wall time (median of 5).
 
+The heavy top's accuracy per second against every family (the splittings,
+RKMK 8, diffrax with constant steps and a PID controller, one trajectory
+and batches) is `splitting.py`'s.
+
     python benchmarks/heavy_top.py --out benchmarks/results
     python benchmarks/heavy_top.py --quick
 """

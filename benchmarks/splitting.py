@@ -329,20 +329,24 @@ def plot(rows, path, targets):
 
     panels = sorted({(r["scene"], r["regime"]) for r in rows}, key=lambda k: (k[0], k[1] != "single", k[1]))
     fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.5), squeeze=False)
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    colours = {m: plt.get_cmap("tab20")(k % 20) for k, m in enumerate(methods)}  # one colour per method in every panel
+    handles = {}
     for ax, (scene, regime) in zip(axes[0], panels):
-        for method in dict.fromkeys(r["method"] for r in rows):
+        for method in methods:
             runs = sorted((r for r in rows if (r["scene"], r["regime"], r["method"]) == (scene, regime, method)), key=lambda r: r["steps"])
             if runs:  # in order of step count: a timing's noise shows as a step back
                 style = "-o" if method.startswith(("splitting", "PRKMK")) else ("-.v" if method.startswith("floor") else "--s")
-                ax.loglog([r["wall_s"] for r in runs], [max(r["error"], 1e-17) for r in runs], style, ms=3, label=method)
+                errors = [max(r["error"], 1e-17) for r in runs]
+                (handles[method],) = ax.loglog([r["wall_s"] for r in runs], errors, style, ms=3, color=colours[method], label=method)
         for target in targets:
             ax.axhline(target, color="0.8", lw=0.8)
         ax.set_title(f"{scene}, {'one trajectory' if regime == 'single' else f'batch {regime}'}")
         ax.set_xlabel("wall time after compilation (s)")
         ax.set_ylabel(f"max error at T = {T_END:g}")
         ax.grid(True, which="both", alpha=0.3)
-    axes[0][0].legend(fontsize=7)
-    fig.tight_layout()
+    fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=min(len(handles), 7), fontsize=7)
+    fig.tight_layout(rect=(0, 0.12, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
 

@@ -18,6 +18,14 @@ over the first 32 trajectories.
 Writes work_precision_{single,batch}.png, work_precision.csv and
 work_precision.json (with the target check) to --out.
 
+This script compares the PRKMK variants with each other (tableaus,
+coordinates, compositions, step-size control). Accuracy per second of every
+family side by side — the exact-flow splittings, PRKMK (Lobatto IIIA–IIIB 6,
+RKMK 8), diffrax with constant steps and with a PID controller, and a
+hand-written splitting kernel — on the free body and the heavy top, one
+trajectory and batches, is `splitting.py`'s (its charts are
+`results/splitting*.png`).
+
     python benchmarks/work_precision.py --out benchmarks/results
     python benchmarks/work_precision.py --quick
 """

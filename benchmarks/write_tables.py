@@ -1,5 +1,7 @@
-"""The accuracy-per-second tables, made from the results of
-`benchmarks/splitting.py` and written into the documents that quote them.
+"""The tables made from the benchmarks' results files, written into the
+documents that quote them: the accuracy-per-second tables from
+`benchmarks/splitting.py`, and `benchmarks/README.md`'s tables of
+`stage_layout.py` and of `against_revision.py` (its heavy-top run).
 
 Each document holds its table between the lines
 
@@ -26,10 +28,15 @@ Tables:
   hand-written kernel's (the floor of that family: the same arithmetic
   with no library code around it).
 - `summary`: one row per scene, batch, device and dtype: the library's
-  time over diffrax's at each target.
+  time over diffrax's at each target, for the library's fastest run and
+  for its fastest symplectic run (a splitting or a Lobatto IIIA–IIIB
+  pair; the RKMK runs keep the group but not the symplectic form).
+- `stage_layout`, `revision`: `stage_layout.json` and
+  `against_revision_heavy_top.json`, one row per case.
 - `decision`: the rows of `accuracy`, with the method to pick (the
   fastest run that reached the target; the hand-written kernel left out,
-  it is not something a user calls) and the runner-up.
+  it is not something a user calls), the runner-up, and the fastest
+  symplectic run.
 """
 
 import argparse
@@ -40,11 +47,11 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 """The checkout whose documents and `benchmarks/results` this script reads and writes."""
-SOURCES = ("splitting.json", "splitting_prkmk.json", "splitting_16384.json", "splitting_gpu_float64.json", "splitting_gpu_float32.json")
+SOURCES = ("splitting.json", "splitting_16384.json", "splitting_gpu_float64.json", "splitting_gpu_float32.json")
 """The results files, in the order their rows are listed (those present)."""
 DOCUMENTS = {
     "README.md": ("summary",),
-    "benchmarks/README.md": ("accuracy",),
+    "benchmarks/README.md": ("accuracy", "stage_layout", "revision"),
     "docs/concepts/choosing.md": ("decision",),
 }
 FLOOR = "floor order 8 (hand-written)"
@@ -55,6 +62,13 @@ DIFFRAX = ("Dopri8 fixed", "Tsit5 fixed", "Dopri8 PID", "Tsit5 PID")
 
 def is_library(method: str) -> bool:
     return method.startswith(("splitting", "PRKMK"))
+
+
+def is_symplectic(method: str) -> bool:
+    """The library's symplectic runs: the splittings and the Lobatto
+    IIIA–IIIB pairs (the explicit RKMK tableaus keep the group, not the
+    symplectic form)."""
+    return method.startswith("splitting") or method.startswith("PRKMK Lobatto")
 
 
 def device_name(machine: dict) -> str:
@@ -132,47 +146,103 @@ def accuracy_table(entries: list[dict]) -> str:
 
 def decision_table(entries: list[dict]) -> str:
     lines = [
-        "| scene | batch | device, dtype | library runs | target | pick | ms | runner-up | ms |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| scene | batch | device, dtype | library runs | target | pick | ms | runner-up | ms | fastest symplectic | ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for e in entries:
         ranked = sorted(((m, n, s, rtol) for m, (n, s, rtol) in e["runs"].items() if m != FLOOR), key=lambda r: r[2])
         first = _cell(ranked[0]) if ranked else "none of the runs reached it | –"
         second = _cell(ranked[1]) if len(ranked) > 1 else "– | –"
+        symplectic = _fastest(e["runs"], is_symplectic)
         where = f"{e['scene']} | {_batch(e['regime'])} | {e['device']}, {e['dtype']} | {e['families']}"
-        lines.append(f"| {where} | {e['target']:.0e} | {first} | {second} |")
+        lines.append(f"| {where} | {e['target']:.0e} | {first} | {second} | {_cell(symplectic)} |")
     return "\n".join(lines)
 
 
 def summary_table(entries: list[dict]) -> str:
     groups = dict.fromkeys((e["scene"], e["regime"], e["device"], e["dtype"], e["families"]) for e in entries)
     lines = [
-        "| scene | batch | device, dtype | library runs | library's fastest | library / diffrax's fastest, at each target |",
-        "|---|---|---|---|---|---|",
+        "| scene | batch | device, dtype | library runs | library's fastest | library / diffrax's fastest, at each target "
+        "| library's fastest symplectic | symplectic / diffrax's fastest |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for key in groups:
-        cells, names = [], []
+        columns = {is_library: ([], []), is_symplectic: ([], [])}
         for e in (e for e in entries if (e["scene"], e["regime"], e["device"], e["dtype"], e["families"]) == key):
-            library, diffrax = _fastest(e["runs"], is_library), _fastest(e["runs"], lambda m: m in DIFFRAX)
-            if library is not None and library[0] not in names:
-                names.append(library[0])
-            if library is None:
-                ratio = "library not reached" if diffrax is not None else "not reached"
-            elif diffrax is None:
-                ratio = "diffrax not reached"
-            else:
-                ratio = f"{library[2] / diffrax[2]:.2f}" + (" **(slower)**" if library[2] > diffrax[2] else "")
-            cells.append(f"{e['target']:.0e}: {ratio}")
+            diffrax = _fastest(e["runs"], lambda m: m in DIFFRAX)
+            for keep, (cells, names) in columns.items():
+                library = _fastest(e["runs"], keep)
+                if library is not None and library[0] not in names:
+                    names.append(library[0])
+                cells.append(f"{e['target']:.0e}: {_ratio(library, diffrax)}")
         scene, regime, device, dtype, families = key
-        lines.append(f"| {scene} | {_batch(regime)} | {device}, {dtype} | {families} | {', '.join(names) or '–'} | {'; '.join(cells)} |")
+        row = f"| {scene} | {_batch(regime)} | {device}, {dtype} | {families} |"
+        for cells, names in columns.values():
+            row += f" {', '.join(names) or '–'} | {'; '.join(cells)} |"
+        lines.append(row)
     return "\n".join(lines)
 
 
-TABLES = {"accuracy": accuracy_table, "decision": decision_table, "summary": summary_table}
+def _ratio(library, diffrax) -> str:
+    if library is None:
+        return "library not reached" if diffrax is not None else "not reached"
+    if diffrax is None:
+        return "diffrax not reached"
+    return f"{library[2] / diffrax[2]:.2f}" + (" **(slower)**" if library[2] > diffrax[2] else "")
+
+
+def stage_layout_table(_entries=None, root: Path | None = None) -> str:
+    """`stage_layout.py`'s results: ns per trajectory-step of an explicit
+    tableau's stages unrolled and in a loop."""
+    data = json.loads(((root or ROOT) / "benchmarks" / "results" / "stage_layout.json").read_text())
+    device = device_name(data["machine"])
+    lines = [
+        "| scene | tableau | regime | device | unrolled, ns | loop, ns | loop / unrolled | compile unrolled, s | compile loop, s |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in data["rows"]:
+        ns, cs = r["ns_per_traj_step"], r["compile_s"]
+        lines.append(
+            f"| {r['scene']} | {r['tableau']} | {r['regime']} | {device} | {ns['unrolled']:.0f} | {ns['loop']:.0f} "
+            f"| {r['loop_over_unrolled']:.2f} | {cs['unrolled']:.2f} | {cs['loop']:.2f} |"
+        )
+    return "\n".join(lines)
+
+
+def revision_table(_entries=None, root: Path | None = None, name: str = "against_revision_heavy_top.json") -> str:
+    """`against_revision.py`'s results: ns per trajectory-step now and at
+    the earlier revision, interleaved."""
+    data = json.loads(((root or ROOT) / "benchmarks" / "results" / name).read_text())
+    device = device_name(data["machine"])
+    lines = [
+        f"| scene | tableau | coordinates | path | batch | device | now, ns | at {data['sha']}, ns | now / before |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in data["rows"]:
+        ns = r["ns_per_traj_step"]
+        lines.append(
+            f"| {r.get('scene', 'free body')} | {r['tableau']} | {r['coordinates']} | {r['path']} | {r['batch']} | {device} "
+            f"| {ns['now']:.0f} | {ns['before']:.0f} | {r['now_over_before']:.2f} |"
+        )
+    return "\n".join(lines)
+
+
+OTHER_SOURCES = ("stage_layout.json", "against_revision_heavy_top.json")
+"""The results files of the `stage_layout` and `revision` tables."""
+ENTRY_TABLES = ("accuracy", "decision", "summary")
+"""The tables made from `splitting.py`'s results; the others read their own file."""
+TABLES = {
+    "accuracy": accuracy_table,
+    "decision": decision_table,
+    "summary": summary_table,
+    "stage_layout": stage_layout_table,
+    "revision": revision_table,
+}
 
 
 def rewritten(text: str, name: str, table: str) -> str:
-    pattern = re.compile(rf"(<!-- write_tables\.py: {name} -->\n)(?:.*?\n)?(<!-- /write_tables\.py -->)", re.S)
+    # `??`: an empty block matches as empty, not as everything up to a later block's end.
+    pattern = re.compile(rf"(<!-- write_tables\.py: {name} -->\n)(?:.*?\n)??(<!-- /write_tables\.py -->)", re.S)
     if not pattern.search(text):
         raise ValueError(f"no block '<!-- write_tables.py: {name} -->' … '<!-- /write_tables.py -->' to write the {name} table into")
     return pattern.sub(lambda m: m.group(1) + table + "\n" + m.group(2), text)
@@ -211,7 +281,7 @@ def main(argv=None) -> int:
         text = path.read_text()
         new = text
         for name in names:
-            new = rewritten(new, name, TABLES[name](entries))
+            new = rewritten(new, name, TABLES[name](entries) if name in ENTRY_TABLES else TABLES[name](root=ROOT))
         if new != text:
             stale.append(document)
             if not args.check:

@@ -77,9 +77,11 @@ class PRKMK(AbstractMethod):
       on a batch recomputes early stages many times over, and the loop
       computes each once. `"auto"` (default) takes the loop for a state
       carrying at least `exact_flows.VECTORISED_BATCH` trajectories, the
-      unrolled stages otherwise (under `jax.vmap` the step sees one
-      trajectory: pass `"loop"` there). Both give the same trajectory up
-      to rounding.
+      unrolled stages otherwise; under `jax.vmap` the step sees one
+      trajectory and keeps them unrolled, which is also the faster layout
+      there (a vmapped loop indexes its slope arrays per trajectory).
+      `benchmarks/stage_layout.py` measures both. They give the same
+      trajectory up to rounding.
     """
 
     bundle: AbstractBundle

@@ -61,7 +61,9 @@ def test_the_table_writer_finds_an_edited_table(tmp_path, monkeypatch):
         import write_tables
     finally:
         sys.path.remove(str(TABLE_WRITER.parent))
-    results = [path.relative_to(ROOT) for path in (ROOT / "benchmarks" / "results").glob("splitting*.*") if path.suffix in (".json", ".md")]
+    folder = ROOT / "benchmarks" / "results"
+    results = [path.relative_to(ROOT) for path in folder.glob("splitting*.*") if path.suffix in (".json", ".md")]
+    results += [(folder / name).relative_to(ROOT) for name in write_tables.OTHER_SOURCES]
     for document in [*write_tables.DOCUMENTS, write_tables.NOTEBOOK, *results]:  # a copy: the writer may write
         (tmp_path / document).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / document).write_text((ROOT / document).read_text())
