@@ -15,7 +15,7 @@ import pytest
 
 import prkmk_jax as pk
 from helpers import INERTIA, PositiveReals, initial_state, rigid_body_field
-from prkmk_jax.scenes import ForcedRigidBody, FreeRigidBody, HeavyTop, TopParameters
+from prkmk_jax.scenes import ForcedParameters, ForcedRigidBody, FreeRigidBody, HeavyTop, TopParameters
 
 COTANGENT = pk.Cotangent(pk.SO3)
 FIELD = rigid_body_field(COTANGENT, "body")
@@ -114,6 +114,14 @@ STATIC = {
         "written in body form",
     ),
     "ForcedRigidBody given a bundle": (lambda: ForcedRigidBody(pk.DirectProduct(pk.SO3)), TypeError, "lives on Cotangent"),
+    # scene parameters
+    "heavy top lever of shape (2,)": (lambda: TopParameters(TOP_ARGS.inertia, jnp.array([0.1, 0.2])), ValueError, "TopParameters.lever"),
+    "heavy top inertia of shape (4,)": (lambda: TopParameters(jnp.ones(4), TOP_ARGS.lever), ValueError, "TopParameters.inertia"),
+    "forced body inertia of shape (2,)": (
+        lambda: ForcedParameters(jnp.array([1.0, 2.0]), None),
+        ValueError,
+        "ForcedParameters.inertia",
+    ),
     "ForcedRigidBody given a torque that is not a function": (lambda: ForcedRigidBody("harmonic"), TypeError, "torque_law must be"),
     "diffeqsolve, scene on another bundle": (
         lambda: _diffeqsolve(term=pk.PRKMKTerm(TOP), solver=pk.PRKMKSolver(TOP_ON_G_X_G_METHOD), args=TOP_ARGS),
@@ -151,6 +159,17 @@ RUNTIME = {
     "integrate, y0 not finite": (lambda y: _integrate(y), pk.BundleElement(GOOD.base, jnp.array([1.0, jnp.nan, 0.0])), "not finite"),
     "integrate, dt ≤ 0 as data": (lambda dt: _integrate(dt=dt), jnp.asarray(-0.1), "dt must be > 0"),
     "integrate, args not finite": (lambda a: _integrate(args=a), jnp.array([1.0, jnp.inf, 1.0]), "non-finite"),
+    "heavy top, a negative moment": (
+        lambda i: _integrate(field=TOP, method=TOP.method(pk.stormer_verlet), args=TopParameters(i, TOP_ARGS.lever)),
+        jnp.array([1.0, -0.8, 0.4]),
+        "TopParameters.inertia: every principal moment",
+    ),
+    "heavy top, a zero moment": (lambda i: TopParameters(i, TOP_ARGS.lever).inertia, jnp.array([1.0, 0.0, 0.4]), "must be > 0"),
+    "forced body, a negative moment": (
+        lambda i: ForcedParameters(i, None).inertia,
+        jnp.array([-1.0, 0.8, 0.4]),
+        "ForcedParameters.inertia: every principal moment",
+    ),
     "diffeqsolve, y0 not orthogonal": (lambda y: _diffeqsolve(y), _with_base(NOT_ORTHOGONAL), "not orthogonal"),
     "diffeqsolve, y0 a reflection": (lambda y: _diffeqsolve(y), _with_base(REFLECTION), "det = −1"),
 }

@@ -9,6 +9,7 @@ embedding ℝ⁹×ℝ³ for the solvers it is compared with.
 import abc
 from typing import ClassVar, Literal
 
+import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
@@ -61,6 +62,33 @@ class AbstractScene(AbstractFieldOnBundle):
         coordinates = Exp() if coordinates is None else coordinates
         # Splitting checks the scene's type itself, with its own message.
         return Splitting(scene=self, coefficients=coefficients, coordinates=coordinates)  # pyright: ignore[reportCallIssue, reportArgumentType]  # equinox: AbstractVars implemented by properties are not __init__ fields
+
+
+def checked_moments(owner: str, moments, allow_scalar: bool = False) -> Array:
+    """`moments` as an array of principal moments of inertia, shape (…, 3)
+    (or () where `allow_scalar`): a wrong shape is a `ValueError` naming
+    `owner`; a moment that is not > 0 (a negative, zero or NaN moment: the
+    inertia is not positive definite) raises where the data is known, eagerly
+    or at run time under `jax.jit` (`eqx.error_if`)."""
+    moments = jnp.asarray(moments)
+    if not jnp.issubdtype(moments.dtype, jnp.floating):
+        moments = moments.astype(float)
+    shape = moments.shape
+    if not ((allow_scalar and shape == ()) or (len(shape) >= 1 and shape[-1] == 3)):
+        allowed = "() or (…, 3)" if allow_scalar else "(…, 3)"
+        raise ValueError(f"{owner}: the principal moments of inertia must have shape {allowed}, got {shape}.")
+    return eqx.error_if(
+        moments, ~jnp.all(moments > 0), f"{owner}: every principal moment of inertia must be > 0 (a positive-definite inertia)."
+    )
+
+
+def checked_vector(owner: str, vector) -> Array:
+    """`vector` as a body-frame 3-vector (shape (…, 3)), or a `ValueError`
+    naming `owner`."""
+    vector = jnp.asarray(vector)
+    if vector.ndim < 1 or vector.shape[-1] != 3:
+        raise ValueError(f"{owner} must be a body-frame vector of shape (…, 3), got shape {vector.shape}.")
+    return vector
 
 
 def rotation_matrix(element) -> Array:

@@ -20,7 +20,7 @@ from .. import diagnostics, exact_flows
 from ..bundles import AbstractBundle, BundleElement
 from ..groups import hat
 from ..method import Time
-from .base import AbstractBodyOnTStarSO3, rotation_matrix
+from .base import AbstractBodyOnTStarSO3, checked_moments, rotation_matrix
 
 
 class HarmonicTorque(eqx.Module):
@@ -43,6 +43,9 @@ class ForcedParameters(eqx.Module):
     """Principal moments of inertia."""
     torque: PyTree
     """The torque law's parameters (differentiable, e.g. for fitting)."""
+
+    def __post_init__(self):
+        self.inertia = checked_moments("ForcedParameters.inertia", self.inertia)
 
 
 class ForcedRigidBody(AbstractBodyOnTStarSO3, exact_flows.AbstractSplitScene):

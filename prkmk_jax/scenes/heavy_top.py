@@ -29,7 +29,7 @@ from jaxtyping import Array, Float
 from .. import diagnostics, exact_flows
 from ..bundles import AbstractBundle, BundleElement, Cotangent, DirectProduct
 from ..groups import SO3, hat
-from .base import AbstractScene, rotation_and_vector_embedding, rotation_matrix
+from .base import AbstractScene, checked_moments, checked_vector, rotation_and_vector_embedding, rotation_matrix
 
 
 class TopParameters(eqx.Module):
@@ -41,6 +41,12 @@ class TopParameters(eqx.Module):
     lever: Float[Array, "3"]
     """ℓ = m g χ: the weight times the body-frame vector from the fixed point
     to the centre of mass."""
+
+    def __post_init__(self):
+        # Shapes are checked at construction; the moments' signs where they
+        # are known (eagerly, or at run time under jit).
+        self.inertia = checked_moments("TopParameters.inertia", self.inertia, allow_scalar=True)
+        self.lever = checked_vector("TopParameters.lever", self.lever)
 
 
 def _vertical(q: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
