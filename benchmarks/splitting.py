@@ -115,23 +115,7 @@ def _runners(scene_name, n, floor_fractions=pk.kahan_li_8.fractions, dtype=jnp.f
 
     def fixed_step(solver):
         """diffrax with constant steps on the embedding ℝ⁹×ℝ³, vmapped."""
-
-        def one(q, p):
-            sol = diffrax.diffeqsolve(
-                diffrax.ODETerm(scene.embedding_field),
-                solver,
-                0.0,
-                T_END,
-                h,
-                jnp.concatenate([q.reshape(9), p]),
-                args,
-                saveat=diffrax.SaveAt(t1=True),
-                stepsize_controller=diffrax.ConstantStepSize(),
-                max_steps=n,
-            )
-            return sol.ys[-1]
-
-        return lambda q, p: jax.vmap(one)(q, p) if q.ndim == 3 else one(q, p)
+        return _on_embedding(scene, args, solver, h, diffrax.ConstantStepSize(), n, lambda sol: sol.ys[-1])
 
     out = {
         f"splitting {name}": library(scene.splitting(c))
@@ -149,11 +133,9 @@ def _runners(scene_name, n, floor_fractions=pk.kahan_li_8.fractions, dtype=jnp.f
     return out
 
 
-def _adaptive_runner(scene_name, solver, rtol, dtype=jnp.float64):
-    """diffrax with a PID controller at rtol = atol on the embedding,
-    vmapped; returns (final state, accepted steps of each trajectory)."""
-    scene, args = SCENES[scene_name]
-    args = jax.tree.map(lambda a: jnp.asarray(a, dtype), args)
+def _on_embedding(scene, args, solver, dt0, controller, max_steps, result):
+    """(q, p) ↦ `result(sol)` of diffrax's solve from 0 to T on the embedding
+    ℝ⁹×ℝ³, vmapped over a batch of initial states."""
 
     def one(q, p):
         sol = diffrax.diffeqsolve(
@@ -161,16 +143,25 @@ def _adaptive_runner(scene_name, solver, rtol, dtype=jnp.float64):
             solver,
             0.0,
             T_END,
-            None,
+            dt0,
             jnp.concatenate([q.reshape(9), p]),
             args,
             saveat=diffrax.SaveAt(t1=True),
-            stepsize_controller=diffrax.PIDController(rtol=rtol, atol=rtol),
-            max_steps=100_000,
+            stepsize_controller=controller,
+            max_steps=max_steps,
         )
-        return sol.ys[-1], sol.stats["num_accepted_steps"]
+        return result(sol)
 
     return lambda q, p: jax.vmap(one)(q, p) if q.ndim == 3 else one(q, p)
+
+
+def _adaptive_runner(scene_name, solver, rtol, dtype=jnp.float64):
+    """diffrax with a PID controller at rtol = atol on the embedding,
+    vmapped; returns (final state, accepted steps of each trajectory)."""
+    scene, args = SCENES[scene_name]
+    args = jax.tree.map(lambda a: jnp.asarray(a, dtype), args)
+    controller = diffrax.PIDController(rtol=rtol, atol=rtol)
+    return _on_embedding(scene, args, solver, None, controller, 100_000, lambda sol: (sol.ys[-1], sol.stats["num_accepted_steps"]))
 
 
 ADAPTIVE = {"Dopri8 PID": diffrax.Dopri8(), "Tsit5 PID": diffrax.Tsit5()}

@@ -123,12 +123,12 @@ class PartitionedTableau:
         return cls(name, a, b, c, a, b, c, order, tolerance)
 
     @classmethod
-    def from_butcher(cls, name: str, tableau, order: int) -> "PartitionedTableau":
+    def from_butcher(cls, name: str, tableau: diffrax.ButcherTableau, order: int) -> "PartitionedTableau":
         """The explicit method of a `diffrax.ButcherTableau` (`c`, `a_lower`,
         `b_sol`) for both components, without trailing stages that carry no
         weight and that no weighted stage reads (the first-same-as-last stage
         diffrax evaluates for its error estimate and interpolation)."""
-        if getattr(tableau, "a_diagonal", None) is not None:
+        if tableau.a_diagonal is not None:
             raise ValueError(f"{name}: only explicit Butcher tableaus convert (this one has a diagonal).")
         stages = len(tableau.b_sol)
         a = np.zeros((stages, stages))
