@@ -76,6 +76,10 @@ class Adjoint(AbstractMadeOfSteps):
     def order(self) -> int:
         return self.method.order
 
+    @property
+    def is_symmetric(self) -> bool:
+        return self.method.is_symmetric
+
     def initial_guesses(self, vector_field, t, y, args=None):
         return self.method.initial_guesses(vector_field, t, y, args)
 
@@ -141,6 +145,10 @@ class Symmetrized(AbstractMadeOfSteps):
         p = self.method.order
         return p + p % 2
 
+    @property
+    def is_symmetric(self) -> bool:
+        return True
+
     def initial_guesses(self, vector_field, t, y, args=None):
         guesses = self.method.initial_guesses(vector_field, t, y, args)
         return guesses, guesses
@@ -164,10 +172,20 @@ class Composition(AbstractMadeOfSteps):
     """Ψ_h = Φ_{γ_m h} ∘ … ∘ Φ_{γ₁ h}: m steps of `method` with the step
     fractions of `coefficients` (e.g. `kahan_li_6`, `triple_jump(4)`).
 
-    The order is `coefficients.order` when `method` is symmetric of order
-    `coefficients.base_order` (checked: the order must match; symmetry
-    depends on the problem, see `symmetry_defect` and `Symmetrized`). The
-    sub-steps run in a `lax.scan`, so compile time does not grow with m;
+    The coefficients raise the order of a *symmetric* base of order
+    `coefficients.base_order` (checked: the orders must match) to
+    `coefficients.order`; of a base that is not symmetric, the composition
+    keeps the base's order (Störmer–Verlet with the exact dexp⁻¹ composed by
+    `kahan_li_6` measures order 3, not 6). So `order` is
+    `coefficients.order` when the base is symmetric by construction
+    (`method.is_symmetric`: `Symmetrized`, `Splitting`) or when
+    `assume_symmetric_base=True` says it is on the user's problem (a PRKMK
+    method's symmetry depends on the field: check it with
+    `symmetry_defect`), and the base's order otherwise. The step is the same
+    either way; `order` is what `PRKMKSolver` reports to diffrax (step-size
+    control) and what the method promises.
+
+    The sub-steps run in a `lax.scan`, so compile time does not grow with m;
     each sub-step's implicit stages start from the same sub-step of the
     previous step (`step_with_guesses`). Negative fractions step backwards
     in time, which every PRKMK method allows.
@@ -175,6 +193,7 @@ class Composition(AbstractMadeOfSteps):
 
     method: AbstractMethod
     coefficients: CompositionCoefficients = eqx.field(static=True)
+    assume_symmetric_base: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         if not isinstance(self.method, AbstractMethod):
@@ -186,10 +205,19 @@ class Composition(AbstractMadeOfSteps):
                 f"{self.coefficients.name} raises a symmetric base of order {self.coefficients.base_order}, but the method "
                 f"has order {self.method.order}; use coefficients for that order (e.g. triple_jump({self.method.order}))."
             )
+        if not isinstance(self.assume_symmetric_base, bool):
+            raise TypeError(f"assume_symmetric_base must be True or False, got {self.assume_symmetric_base!r}.")
 
     @property
     def order(self) -> int:
-        return self.coefficients.order
+        if self.method.is_symmetric or self.assume_symmetric_base:
+            return self.coefficients.order
+        return self.method.order
+
+    @property
+    def is_symmetric(self) -> bool:
+        # A palindrome of symmetric steps is symmetric.
+        return self.method.is_symmetric or self.assume_symmetric_base
 
     def initial_guesses(self, vector_field, t, y, args=None):
         m = self.coefficients.num_steps

@@ -81,8 +81,20 @@ class AbstractMethod(eqx.Module):
     @property
     @abc.abstractmethod
     def order(self) -> int:
-        """The method's order (on problems where its assumptions hold; for a
-        composition, that its base is symmetric)."""
+        """The method's order: what its construction guarantees on every
+        smooth problem (a composition claims the order its coefficients
+        give only of a base known to be symmetric, see `Composition`)."""
+
+    @property
+    @abc.abstractmethod
+    def is_symmetric(self) -> bool:
+        """Whether the method is symmetric (Φ_{−h} ∘ Φ_h = id) by its
+        construction, whatever the problem: `Symmetrized`, a `Splitting`, and
+        compositions and adjoints of these (or a composition whose base the user
+        declares symmetric, `Composition(assume_symmetric_base=True)`). False
+        for a PRKMK method, whose
+        symmetry depends on the tableau, the coordinate map and the field
+        (`symmetry_defect` measures it on a problem)."""
 
     @abc.abstractmethod
     def initial_guesses(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None) -> Any:
@@ -137,13 +149,14 @@ class AbstractMethod(eqx.Module):
             relative = bundle.multiply(y_next, bundle.inverse(y))
         return self.coordinates.inverse_map(bundle, relative)
 
-    def slope(self, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
+    def slope(self, U: AlgebraPair, X: AlgebraPair, order: int | None = None) -> AlgebraPair:
         """U' for the generator X at the point reached by the increment U:
         df⁻¹_U(X) (space form) or df⁻¹_{−U}(X) (body form), truncated as the
-        coordinates say for this method's order."""
+        coordinates say for a method of order `order` (default this
+        method's)."""
         if self.form == "body":
             U = tree_scale(-1.0, U)
-        return self.coordinates.inverse_differential(self.bundle, U, X, self.order)
+        return self.coordinates.inverse_differential(self.bundle, U, X, self.order if order is None else order)
 
     def slope_at(self, vector_field: VectorField, t: Time, U: Increment, y: BundleElement, args: PyTree) -> AlgebraPair:
         """The slope of a stage: df⁻¹_U(X(t, f(U)⊙y)), the field at the point

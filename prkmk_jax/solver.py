@@ -18,6 +18,11 @@ from .bundles import AlgebraPair, BundleElement
 from .interpolation import OnGroupInterpolation
 from .method import AbstractMethod, first_failure, tree_scale
 
+DENSE_OUTPUT_TRUNCATION_ORDER = 4
+"""Dense output evaluates df⁻¹ at the step's end truncated as for a method of
+at least this order, whatever the method's own: the cubic Hermite
+interpolant (`OnGroupInterpolation`) needs its end slope to O(h³)."""
+
 
 class PRKMKTerm(diffrax.AbstractTerm):
     """A vector field `f(t, y, args) -> (ξ, η)` on a bundle group, the
@@ -187,7 +192,7 @@ class PRKMKSolver(diffrax.AbstractSolver):
         # of diffrax's clock, in which the interpolation runs.
         x1 = method.generator(field, s1, y1, args)
         slope0 = tree_scale(direction, x0)  # df⁻¹_0 = I
-        slope1 = tree_scale(direction, method.slope(increment, x1))
+        slope1 = tree_scale(direction, method.slope(increment, x1, order=max(method.order, DENSE_OUTPUT_TRUNCATION_ORDER)))
         dense_info = dict(y0=y0, increment=increment, slope0=slope0, slope1=slope1, method=method)
         return y_next, y_error, dense_info, carried, result
 

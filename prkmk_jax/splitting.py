@@ -119,6 +119,11 @@ class Splitting(AbstractMethod):
     def order(self) -> int:
         return 2 if self.coefficients is None else self.coefficients.order
 
+    @property
+    def is_symmetric(self) -> bool:
+        """The Strang composition of exact flows, and symmetric compositions of it, are symmetric."""
+        return True
+
     def check_fits(self, vector_field) -> None:
         if not (vector_field is self.scene or eqx.tree_equal(vector_field, self.scene) is True):
             raise ValueError(

@@ -48,10 +48,19 @@ def _dexp_inv_closed_form(u, v):
     z = -1j * (lam[..., :, None] - lam[..., None, :])
     small = jnp.abs(z) < 1e-3
     safe = jnp.where(small, 1.0, z)
+    denominator = jnp.expm1(safe)
+    # At z = 2πik the entry belongs to a pair of conjugate eigenvectors
+    # (λⱼ = −λₖ = iθ, θ = π), whose direction wⱼwⱼᵀ is symmetric: a skew v
+    # has no component there, only rounding. Zero it instead of dividing by 0.
+    singular = jnp.abs(denominator) == 0
     # z/(eᶻ − 1) = 1 − z/2 + z²/12 − z⁴/720 + …
-    factor = jnp.where(small, 1 - z / 2 + z**2 / 12, safe / jnp.expm1(safe))
+    factor = jnp.where(small, 1 - z / 2 + z**2 / 12, jnp.where(singular, 0.0, safe / jnp.where(singular, 1.0, denominator)))
     rotated = jnp.conj(_transpose(vecs)) @ v.astype(complex_dtype) @ vecs
-    return jnp.real(vecs @ (factor * rotated) @ jnp.conj(_transpose(vecs))).astype(u.dtype)
+    out = jnp.real(vecs @ (factor * rotated) @ jnp.conj(_transpose(vecs))).astype(u.dtype)
+    # The rounding of those symmetric directions, multiplied by the large
+    # z/(eᶻ − 1) near z = 2πi (an angle near π), lands in the symmetric part:
+    # the skew part is the result.
+    return 0.5 * (out - _transpose(out))
 
 
 def _transpose(m):
@@ -72,30 +81,55 @@ def _log(r):
     n = r.shape[-1]
     sym = 0.5 * (r + _transpose(r))
     skew = 0.5 * (r - _transpose(r))
-    eye = _eye_like(r)
-    distance = eye - sym
+    distance = _eye_like(r) - sym
     near_identity = jnp.sum(distance**2, axis=(-2, -1)) < NEAR_IDENTITY**2
+    # S = W diag(c) Wᵀ; in that basis A is block diagonal (a block per
+    # eigenvalue cluster of S, sin θ·J on a plane of angle θ).
     c, w = jnp.linalg.eigh(sym)
     c = jnp.clip(c, -1.0, 1.0)
-    one_minus = 1.0 - c
-    small = one_minus < 1e-6
-    safe = jnp.where(small, 0.5, c)
-    # arccos(c)/sin(arccos c); near c = 1: 1 + (1 − c)/3 + 2(1 − c)²/15.
-    # (Near c = −1 it grows without bound; the plane of such an angle is
-    # handled below.)
-    g = jnp.where(small, 1.0 + one_minus / 3 + 2 * one_minus**2 / 15, jnp.arccos(safe) / jnp.sqrt(jnp.maximum(1.0 - safe**2, 1e-300)))
-    # The plane of the largest angle (eigenvalues 0 and 1, ascending).
-    a, b = w[..., :, 0], w[..., :, 1]
-    sin_ab = jnp.einsum("...i,...ij,...j->...", b, skew, a)
-    sign = jnp.where(sin_ab >= 0, 1.0, -1.0).astype(r.dtype)
-    cos_ab = 0.5 * (c[..., 0] + c[..., 1])
-    theta = jnp.arctan2(jnp.abs(sin_ab), cos_ab)
-    plane = (sign * theta)[..., None, None] * (b[..., :, None] * a[..., None, :] - a[..., :, None] * b[..., None, :])
-    gap = c[..., 2] - c[..., 1] if n > 2 else jnp.ones_like(cos_ab)
-    near_pi = (c[..., 0] < -0.9) & (gap > 1e-4)
-    keep = jnp.where(near_pi[..., None] & (jnp.arange(n) < 2), 0.0, g)
-    out = ((w * keep[..., None, :]) @ _transpose(w)) @ skew
-    general = 0.5 * (out - _transpose(out)) + jnp.where(near_pi[..., None, None], plane, 0.0)
+    rotated = _transpose(w) @ skew @ w
+    # General formula: θ_k J = (θ_k / sin θ_k) A on each eigenvector w_k, with
+    # sin θ_k = |A w_k| (accurate to round-off in absolute terms, unlike
+    # √(1 − c²) near c = −1) and θ_k = atan2(sin θ_k, c_k).
+    sine = jnp.sqrt(jnp.sum(rotated**2, axis=-2))
+    positive = sine > 0
+    ratio = jnp.where(positive, jnp.arctan2(sine, c) / jnp.where(positive, sine, 1.0), 1.0)
+    general = 0.5 * (ratio[..., :, None] * rotated + rotated * ratio[..., None, :])
+    # Planes near π: there A ≈ 0 carries J with a relative error eps/sin θ, and
+    # the plane itself (eigenvectors 2p, 2p+1 of S, whose eigenvalues come in
+    # equal pairs, ascending) gives θJ to eps/gap instead: J = ±(b aᵀ − a bᵀ),
+    # the sign of bᵀAa, θ = atan2(|bᵀAa|, c). Taken where the pair stands
+    # apart from its neighbours by more than sin θ.
+    log_rotated = general
+    pair_sine = [jnp.abs(rotated[..., 2 * p + 1, 2 * p]) for p in range(n // 2)]
+    for p in range(n // 2):
+        i, j = 2 * p, 2 * p + 1
+        sin_ab = rotated[..., j, i]
+        cos_ab = 0.5 * (c[..., i] + c[..., j])
+        gap = jnp.full_like(cos_ab, jnp.inf)
+        if i > 0:
+            gap = jnp.minimum(gap, c[..., i] - c[..., i - 1])
+        if j + 1 < n:
+            gap = jnp.minimum(gap, c[..., j + 1] - c[..., j])
+        theta = jnp.arctan2(jnp.abs(sin_ab), cos_ab)
+        # The plane's error is eps/gap. The general formula's is eps/sin θ
+        # within a cluster of equal angles, but eps/gap times the ratio of
+        # the sines where the next plane's angle differs: take the plane
+        # where it stands apart (gap > sin θ) or its neighbours' sines differ
+        # from its own by more than a quarter.
+        neighbours = [pair_sine[k] for k in (p - 1, p + 1) if 0 <= k < n // 2]
+        distinct = jnp.ones_like(cos_ab, dtype=bool)
+        for other in neighbours:
+            distinct = distinct & (jnp.abs(other - jnp.abs(sin_ab)) > 0.25 * jnp.maximum(other, jnp.abs(sin_ab)))
+        use_plane = (cos_ab < 0) & ((gap > jnp.abs(sin_ab)) | distinct)
+        sign = jnp.where(sin_ab >= 0, 1.0, -1.0).astype(r.dtype)
+        in_plane = (jnp.arange(n) == i) | (jnp.arange(n) == j)
+        touches = in_plane[:, None] | in_plane[None, :]
+        block = jnp.zeros((n, n), r.dtype).at[j, i].set(1.0).at[i, j].set(-1.0)
+        plane = (sign * theta)[..., None, None] * block
+        log_rotated = jnp.where(use_plane[..., None, None] & touches, plane, log_rotated)
+    log_rotated = 0.5 * (log_rotated - _transpose(log_rotated))
+    general = w @ log_rotated @ _transpose(w)
     series = _log_series_factor(distance) @ skew
     series = 0.5 * (series - _transpose(series))
     return jnp.where(near_identity[..., None, None], series, general)
@@ -137,20 +171,26 @@ class SOn(AbstractQuadraticGroup):
         """Principal logarithm (angles ≤ π) from the split R = S + A.
 
         S = (R + Rᵀ)/2 and A = (R − Rᵀ)/2 commute and, in each invariant plane
-        of rotation angle θ, equal cos θ·I and sin θ·J, so log R = g(S)·A with
-        g(c) = arccos(c)/√(1 − c²):
+        of rotation angle θ, equal cos θ·I and sin θ·J, so log R = θJ there:
 
-        * near the identity (‖I − S‖_F < 0.1) g(S) is its power series in
-          I − S, without an eigendecomposition, so that gradients are finite
-          at R = I;
-        * elsewhere g comes from the eigendecomposition of S;
-        * when the largest angle is near π (cos θ < −0.9) A ≈ 0 carries too
-          little of J, and that plane's term θJ is built from the plane itself
-          (the eigenvectors a, b of S: J = ±(baᵀ − abᵀ), the sign of bᵀAa,
-          θ = atan2(|bᵀAa|, cos θ)). At θ = π exactly either sign is a
-          logarithm. Two angles that are both near π and nearly equal make
-          log ill-conditioned (at −I in SO(4) it is not unique); the general
-          formula is used then.
+        * near the identity (‖I − S‖_F < 0.1) log R = g(S)·A with
+          g(c) = arccos(c)/√(1 − c²) as a power series in I − S, without an
+          eigendecomposition, so that gradients are finite at R = I;
+        * elsewhere, in the eigenbasis of S: on each eigenvector w,
+          θ = atan2(|Aw|, c) and θJ = (θ/|Aw|)·A;
+        * on a plane whose angle is near π (c < 0), where A ≈ 0 carries J
+          with a relative error eps/sin θ, and whose pair of eigenvalues
+          stands apart from the others by more than sin θ, θJ is built from
+          the plane itself (its eigenvectors a, b: J = ±(baᵀ − abᵀ), the sign
+          of bᵀAa, θ = atan2(|bᵀAa|, c)), accurate to eps/gap. At θ = π
+          exactly either sign is a logarithm.
+
+        Its error is of the order of eps times the condition number of log
+        at R (the norm of dexp⁻¹ at log R, which grows like 1/(2π − θᵢ − θⱼ)
+        as two angles approach π together; at −I in SO(4) log is not unique),
+        except for two *distinct* angles π − δᵢ, π − δⱼ both so close to π
+        that their cosines (−1 + δ²/2) are closer than the eigensolver of S
+        resolves: the error is then about eps/|δᵢ² − δⱼ²|.
 
         Its derivative is not that of these formulas (the eigendecomposition
         of S, whose eigenvalues come in equal pairs, has none) but
@@ -206,8 +246,13 @@ class SOn(AbstractQuadraticGroup):
         differentiate at u = 0). Beyond, where the series converges slowly or
         not at all, the closed form: iu = VΛV* is Hermitian, ad_u acts on
         Ṽ = V*vV entrywise as −i(λ_j − λ_k), and dexp⁻¹ multiplies each entry
-        by z/(eᶻ − 1) at that z. (Its gradient needs distinct eigenvalues of
-        iu, as any eigendecomposition's does.)"""
+        by z/(eᶻ − 1) at that z; the result's skew part is kept, which drops
+        the rounding that entries of Ṽ outside so(n) (pairs of conjugate
+        eigenvectors, z = 2iθ, large as θ → π) would add. Accurate to eps
+        times the condition number (the largest |z/(eᶻ − 1)| over ad_u's
+        eigenvalues on so(n), ±i(θⱼ ± θₖ), ±iθⱼ) up to angles of π. (Its
+        gradient needs distinct eigenvalues of iu, as any
+        eigendecomposition's does.)"""
         u, v = jnp.broadcast_arrays(u, v)
         large = jnp.sum(u**2, axis=(-2, -1)) > SERIES_RADIUS**2
         series_u = jnp.where(large[..., None, None], 0.0, u)
