@@ -4,9 +4,9 @@ number of steps, and what solving the implicit stages to round-off costs
 `iterate_until="tolerance"`, which stops at the default tolerance 1e-12).
 
 Growth: for each method and setting, a batch of random initial states
-(Haar-random attitudes, unit |Π| in a random direction), h = 0.1, run
-for up to `--max-steps` steps (vmapped, each trajectory its own stage
-iterations). For each invariant, the largest error up to step N (relative
+(Haar-random attitudes, unit |Π| in a random direction), h = 0.1 (the
+heavy top 0.05), run for up to `--max-steps` steps (vmapped, each
+trajectory its own stage iterations). For each invariant, the largest error up to step N (relative
 for the energy and the Casimirs, the largest entry of QᵀQ − I for the
 attitude) is taken per trajectory, its median over the batch is recorded
 at N = 10³ … and the growth exponent is the least-squares slope of
@@ -17,8 +17,13 @@ log(median) against log N over N ≥ 10⁴. A random walk of roundings gives
   energy and |Π| exactly in exact arithmetic, so their errors are rounding
   alone; also SV∘Kahan–Li 6 and Symmetrized Lobatto IIIA–IIIB 4.
 * Heavy top (T*SO(3), inertia (1, 0.8, 0.4), lever (0.1, 0.2, 0.9)):
-  Symmetrized SV; its energy error is the method's bounded O(h²)
-  oscillation, and the vertical momentum's too.
+  Symmetrized SV; its energy and vertical momentum errors are the
+  method's (truncation, not rounding); QᵀQ is rounding.
+* Against diffrax's Dopri8 at equal cost: Dopri8 on the embedding ℝ⁹×ℝ³
+  with the constant step at which it costs what SV does per unit of
+  simulated time (both timed here, vmapped over the same batch), over
+  the same horizon; `round_off.png` charts the energy errors against
+  time.
 
 Cost: the same methods, one trajectory and a batch of 64 in the state,
 both settings compiled and run interleaved: ns per trajectory-step,
@@ -31,6 +36,7 @@ implicit iterations a step, and their ratios.
 import json
 import time
 
+import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -40,7 +46,7 @@ import prkmk_jax as pk
 from prkmk_jax.scenes import FreeRigidBody, HeavyTop, TopParameters
 from prkmk_jax.scenes.rigid_body import PAPER_INERTIA, random_rotation
 
-H = 0.1
+STEP = {"free body": 0.1, "heavy top": 0.05}
 SETTINGS = ("round-off", "tolerance")
 FREE = FreeRigidBody()
 TOP = HeavyTop()
@@ -82,13 +88,19 @@ def growth(method, scene_name, num_steps, batch, every, dtype=jnp.float64):
     scene, args = SCENES[scene_name]
     args = jax.tree.map(lambda a: jnp.asarray(a, dtype), args)
     y0 = initial_states(batch, dtype=dtype)
-    run = jax.jit(jax.vmap(lambda y: pk.integrate(method, scene, y, 0.0, H, num_steps, args, save_every=every)))
+    h = STEP[scene_name]
+    run = jax.jit(jax.vmap(lambda y: pk.integrate(method, scene, y, 0.0, h, num_steps, args, save_every=every)))
     start = time.perf_counter()
     trajectory = jax.block_until_ready(run(y0))
     seconds = time.perf_counter() - start
     if not bool(jnp.all(trajectory.result == pk.RESULTS.successful)):
         raise RuntimeError(f"{scene_name}: a stage failed to converge")
-    invariants = scene.invariants(trajectory.ys, args)
+    return invariant_errors(scene.invariants(trajectory.ys, args)), seconds
+
+
+def invariant_errors(invariants):
+    """Median over the batch of the largest error up to each saved point,
+    per invariant (relative, but QᵀQ − I as it is)."""
     errors = {}
     for name, values in invariants.items():
         values = np.asarray(values, np.float64)
@@ -99,7 +111,26 @@ def growth(method, scene_name, num_steps, batch, every, dtype=jnp.float64):
         else:
             error = np.abs(values / values[:, :1] - 1)
         errors[name] = np.median(np.maximum.accumulate(error, axis=1), axis=0)
-    return errors, seconds
+    return errors
+
+
+def log_spaced(checkpoints, values, count=80):
+    """The entries of `values` at about `count` checkpoints spaced evenly in
+    log(checkpoints), the last included: what the results file keeps."""
+    checkpoints = np.asarray(checkpoints)
+    targets = np.exp(np.linspace(np.log(checkpoints[0]), np.log(checkpoints[-1]), count))
+    picks = sorted({int(np.argmin(np.abs(np.log(checkpoints) - np.log(t)))) for t in targets} | {len(checkpoints) - 1})
+    return [int(checkpoints[i]) for i in picks], [float(values[i]) for i in picks]
+
+
+def stored(row, checkpoints, errors):
+    """`row` with the checkpoints and errors thinned by `log_spaced` and the
+    exponents fitted on all of them."""
+    row["exponent"] = {k: exponent(checkpoints, v) for k, v in errors.items()}
+    row["errors"] = {}
+    for k, v in errors.items():
+        row["checkpoints"], row["errors"][k] = log_spaced(checkpoints, v)
+    return row
 
 
 def exponent(steps, errors, smallest=10_000):
@@ -120,7 +151,7 @@ def cost(method, scene_name, batch, num_steps, rounds, setting_methods):
 
     def make(m):
         def run(y):
-            trajectory = pk.integrate(m, scene, y, 0.0, H, num_steps, args, save_every=num_steps)
+            trajectory = pk.integrate(m, scene, y, 0.0, STEP[scene_name], num_steps, args, save_every=num_steps)
             return trajectory.ys, trajectory.stats["num_iterations"]
 
         return run
@@ -138,15 +169,87 @@ def cost(method, scene_name, batch, num_steps, rounds, setting_methods):
     )
 
 
+def dopri8_at_equal_cost(sv, num_steps, batch, every, probe_steps):
+    """Dopri8 on the embedding of the free body, at the constant step that
+    costs per unit of simulated time what `sv` (h = 0.1) costs, over the
+    same horizon, saved at the same times. Returns (errors, its step, the
+    two costs in ns per trajectory-step)."""
+    h = STEP["free body"]
+    inertia = jnp.asarray(PAPER_INERTIA)
+    y0 = initial_states(batch)
+    z0 = FREE.to_embedding(y0)
+
+    def dopri8(z, t_end, dt, ts):
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(FREE.embedding_field),
+            diffrax.Dopri8(),
+            0.0,
+            t_end,
+            dt,
+            z,
+            inertia,
+            saveat=diffrax.SaveAt(ts=ts),
+            stepsize_controller=diffrax.ConstantStepSize(),
+            max_steps=None,
+        )
+        return sol.ys
+
+    def sv_run(y):
+        return pk.integrate(sv, FREE, y, 0.0, h, probe_steps, inertia, save_every=probe_steps).ys
+
+    probe_ts = jnp.asarray([probe_steps * h])
+    sv_fn = jax.jit(jax.vmap(sv_run))
+    d8_fn = jax.jit(jax.vmap(lambda z: dopri8(z, probe_steps * h, h, probe_ts)))
+    jax.block_until_ready((sv_fn(y0), d8_fn(z0)))
+    sv_times, d8_times = [], []
+    for _ in range(3):  # alternating, so that a slow spell hits both
+        sv_times += C.interleaved_times({"sv": sv_fn}, y0, rounds=1)["sv"]
+        d8_times += C.interleaved_times({"d8": d8_fn}, z0, rounds=1)["d8"]
+    sv_ns = float(np.median(sv_times)) / (batch * probe_steps) * 1e9
+    d8_ns = float(np.median(d8_times)) / (batch * probe_steps) * 1e9
+    dt = h * d8_ns / sv_ns  # equal cost per unit time: fewer, dearer steps
+    ts = np.arange(0, num_steps // every + 1) * every * h
+    t_end, saves = float(ts[-1]), jnp.asarray(ts)
+    zs = jax.jit(jax.vmap(lambda z: dopri8(z, t_end, dt, saves)))(z0)
+    q, pi = zs[..., :9].reshape(*zs.shape[:-1], 3, 3), zs[..., 9:]
+    errors = invariant_errors(FREE.invariants(pk.BundleElement(pk.SO3(q), pi), inertia))
+    return errors, dt, {"SV": sv_ns, "Dopri8": d8_ns}
+
+
+def chart(rows, dopri, out):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    h = STEP["free body"]
+    styles = {"round-off": "-", "tolerance": "--"}
+    for row in rows:
+        if row["scene"] != "free body" or row["dtype"] != "float64" or row["method"] not in ("SV exp", "SV∘Kahan–Li 6"):
+            continue
+        ts = np.asarray(row["checkpoints"]) * h
+        ax.loglog(ts, row["errors"]["energy"], styles[row["setting"]], label=f"{row['method']}, {row['setting']}")
+    ts = np.asarray(dopri["checkpoints"]) * h
+    ax.loglog(ts, dopri["errors"]["energy"], ":", label=f"Dopri8 at SV exp's cost (h = {dopri['dt']:.3f})")
+    ax.set_xlabel("time (free body, h = 0.1 for SV)")
+    ax.set_ylabel("median of the largest relative energy error so far")
+    ax.legend(fontsize=8)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out / "round_off.png", dpi=120)
+    plt.close(fig)
+
+
 def main(argv=None):
     def extra(parser):
         parser.add_argument("--max-steps", type=float, default=1e6, help="steps of the growth runs (default 1e6)")
-        parser.add_argument("--long-steps", type=float, default=1e7, help="steps of the longest run, SV exp only (default 1e7)")
+        parser.add_argument("--long-steps", type=float, default=1e7, help="steps of the longest run, SV exp at round-off (default 1e7)")
 
     args, out = C.cli(__doc__, argv, extra)
     quick = args.quick
-    max_steps = 20_000 if quick else int(args.max_steps)
-    long_steps = 20_000 if quick else int(args.long_steps)
+    max_steps = 4_000 if quick else int(args.max_steps)
+    long_steps = 4_000 if quick else int(args.long_steps)
     batch = 2 if quick else 16
     every = 1000
     by_setting = {setting: methods(setting) for setting in SETTINGS}
@@ -155,21 +258,11 @@ def main(argv=None):
     for name in by_setting["round-off"]:
         for setting in SETTINGS:
             scene_name, method = by_setting[setting][name]
-            steps = long_steps if name == "SV exp" else max_steps
+            steps = long_steps if (name == "SV exp" and setting == "round-off") else max_steps
             errors, seconds = growth(method, scene_name, steps, batch, every)
             saved = np.arange(len(next(iter(errors.values())))) * every
-            row = dict(
-                method=name,
-                scene=scene_name,
-                setting=setting,
-                dtype="float64",
-                batch=batch,
-                steps=steps,
-                seconds=seconds,
-                checkpoints=[int(n) for n in saved[1:]],
-                errors={k: [float(x) for x in v[1:]] for k, v in errors.items()},
-                exponent={k: exponent(saved[1:], v[1:]) for k, v in errors.items()},
-            )
+            row = dict(method=name, scene=scene_name, setting=setting, dtype="float64", batch=batch, steps=steps, seconds=seconds)
+            row = stored(row, saved[1:], {k: v[1:] for k, v in errors.items()})
             growth_rows.append(row)
             summary = "  ".join(f"{k}: {row['errors'][k][-1]:.1e} ({row['exponent'][k]:.2f})" for k in errors)
             print(f"{name:28s} {setting:10s} {steps:9d} {seconds:7.1f}  {summary}", flush=True)
@@ -178,29 +271,28 @@ def main(argv=None):
         scene_name, method = by_setting[setting]["SV exp"]
         errors, seconds = growth(method, scene_name, max_steps, batch, every, jnp.float32)
         saved = np.arange(len(next(iter(errors.values())))) * every
-        row = dict(
-            method="SV exp",
-            scene=scene_name,
-            setting=setting,
-            dtype="float32",
-            batch=batch,
-            steps=max_steps,
-            seconds=seconds,
-            checkpoints=[int(n) for n in saved[1:]],
-            errors={k: [float(x) for x in v[1:]] for k, v in errors.items()},
-            exponent={k: exponent(saved[1:], v[1:]) for k, v in errors.items()},
-        )
+        row = dict(method="SV exp", scene=scene_name, setting=setting, dtype="float32", batch=batch, steps=max_steps, seconds=seconds)
+        row = stored(row, saved[1:], {k: v[1:] for k, v in errors.items()})
         growth_rows.append(row)
         summary = "  ".join(f"{k}: {row['errors'][k][-1]:.1e} ({row['exponent'][k]:.2f})" for k in errors)
         print(f"{'SV exp, float32':28s} {setting:10s} {max_steps:9d} {seconds:7.1f}  {summary}", flush=True)
+
+    probe = 500 if quick else 20_000
+    dopri_errors, dopri_dt, dopri_cost = dopri8_at_equal_cost(by_setting["round-off"]["SV exp"][1], max_steps, batch, every, probe)
+    saved = np.arange(len(dopri_errors["energy"])) * every
+    dopri = dict(method="Dopri8, equal cost", dt=dopri_dt, ns_per_traj_step=dopri_cost, steps_of_sv=max_steps)
+    dopri = stored(dopri, saved[1:], {k: v[1:] for k, v in dopri_errors.items()})
+    summary = "  ".join(f"{k}: {dopri['errors'][k][-1]:.1e} ({dopri['exponent'][k]:.2f})" for k in dopri_errors)
+    print(f"{'Dopri8, equal cost':28s} {'h=' + format(dopri_dt, '.3f'):10s} {max_steps:9d} {'':7s}  {summary}", flush=True)
+    chart(growth_rows, dopri, out)
 
     cost_rows = []
     rounds = 2 if quick else 9
     print(f"\n{'method':28s} {'batch':>5s} {'round-off ns':>12s} {'tolerance ns':>12s} {'ratio':>6s} {'it r-o':>7s} {'it tol':>7s}")
     for name in by_setting["round-off"]:
-        for cost_batch in (1, 64):
+        for cost_batch in (1, 4) if quick else (1, 64):
             scene_name = by_setting["round-off"][name][0]
-            steps = 50 if quick else max(200, 20_000 // cost_batch)
+            steps = 20 if quick else max(200, 20_000 // cost_batch)
             row = cost(None, scene_name, cost_batch, steps, rounds, {s: by_setting[s][name][1] for s in SETTINGS})
             row.update(method=name, scene=scene_name, batch=cost_batch, steps=steps)
             cost_rows.append(row)
@@ -211,7 +303,7 @@ def main(argv=None):
                 flush=True,
             )
     with open(out / "round_off.json", "w") as f:
-        json.dump(dict(machine=C.machine(), h=H, growth=growth_rows, cost=cost_rows), f, indent=1)
+        json.dump(dict(machine=C.machine(), h=STEP, growth=growth_rows, dopri8=dopri, cost=cost_rows), f, indent=1)
 
 
 if __name__ == "__main__":

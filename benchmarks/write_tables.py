@@ -33,6 +33,9 @@ Tables:
   pair; the RKMK runs keep the group but not the symplectic form).
 - `stage_layout`, `revision`: `stage_layout.json` and
   `against_revision_heavy_top.json`, one row per case.
+- `round_off`, `round_off_cost`: `round_off.json`, the growth of the
+  invariants' errors over long runs and what solving the stages to
+  round-off costs.
 - `decision`: the rows of `accuracy`, with the method to pick (the
   fastest run that reached the target; the hand-written kernel left out,
   it is not something a user calls), the runner-up, and the fastest
@@ -51,7 +54,7 @@ SOURCES = ("splitting.json", "splitting_16384.json", "splitting_gpu_float64.json
 """The results files, in the order their rows are listed (those present)."""
 DOCUMENTS = {
     "README.md": ("summary",),
-    "benchmarks/README.md": ("accuracy", "stage_layout", "revision"),
+    "benchmarks/README.md": ("accuracy", "stage_layout", "revision", "round_off", "round_off_cost"),
     "docs/concepts/choosing.md": ("decision",),
 }
 FLOOR = "floor order 8 (hand-written)"
@@ -227,8 +230,48 @@ def revision_table(_entries=None, root: Path | None = None, name: str = "against
     return "\n".join(lines)
 
 
-OTHER_SOURCES = ("stage_layout.json", "against_revision_heavy_top.json")
-"""The results files of the `stage_layout` and `revision` tables."""
+def round_off_table(_entries=None, root: Path | None = None) -> str:
+    """`round_off.py`'s results: how each invariant's error grows with the
+    number of steps (the largest error at the last step and the fitted
+    exponent), for the stages solved to round-off and stopped at the
+    tolerance, and Dopri8 at equal cost."""
+    data = json.loads(((root or ROOT) / "benchmarks" / "results" / "round_off.json").read_text())
+    lines = [
+        "| method | scene | stages | dtype | trajectories | steps | largest error at the last step (growth exponent) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in data["growth"]:
+        cells = ", ".join(f"{name} {r['errors'][name][-1]:.1e} ({r['exponent'][name]:.2f})" for name in r["errors"])
+        lines.append(f"| {r['method']} | {r['scene']} | {r['setting']} | {r['dtype']} | {r['batch']} | {r['steps']:.0e} | {cells} |")
+    d = data["dopri8"]
+    cells = ", ".join(f"{name} {d['errors'][name][-1]:.1e} ({d['exponent'][name]:.2f})" for name in d["errors"])
+    batch, horizon = data["growth"][0]["batch"], f"same time as SV's {d['steps_of_sv']:.0e}"
+    lines.append(f"| Dopri8 at SV's cost (h = {d['dt']:.3f}) | free body | explicit | float64 | {batch} | {horizon} | {cells} |")
+    return "\n".join(lines)
+
+
+def round_off_cost_table(_entries=None, root: Path | None = None) -> str:
+    """`round_off.py`'s cost rows: ns per trajectory-step and iterations a
+    step with the stages solved to round-off and stopped at the tolerance,
+    interleaved."""
+    data = json.loads(((root or ROOT) / "benchmarks" / "results" / "round_off.json").read_text())
+    device = device_name(data["machine"])
+    lines = [
+        "| method | trajectories | device | round-off, ns | tolerance, ns | round-off / tolerance "
+        "| iterations a step, round-off | tolerance |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in data["cost"]:
+        ns, it = r["ns_per_traj_step"], r["iterations_per_step"]
+        lines.append(
+            f"| {r['method']} | {r['batch']} | {device} | {ns['round-off']:.0f} | {ns['tolerance']:.0f} "
+            f"| {r['round_off_over_tolerance']:.2f} | {it['round-off']:.1f} | {it['tolerance']:.1f} |"
+        )
+    return "\n".join(lines)
+
+
+OTHER_SOURCES = ("stage_layout.json", "against_revision_heavy_top.json", "round_off.json")
+"""The results files of the `stage_layout`, `revision` and `round_off` tables."""
 ENTRY_TABLES = ("accuracy", "decision", "summary")
 """The tables made from `splitting.py`'s results; the others read their own file."""
 TABLES = {
@@ -237,6 +280,8 @@ TABLES = {
     "summary": summary_table,
     "stage_layout": stage_layout_table,
     "revision": revision_table,
+    "round_off": round_off_table,
+    "round_off_cost": round_off_cost_table,
 }
 
 

@@ -38,10 +38,11 @@ def test_round_off_iteration_reaches_the_fixed_point_to_rounding(dtype):
 
 def test_round_off_iteration_still_reports_a_failure():
     """A map without a contraction (z ← 2z + 1) never meets the tolerance:
-    the round-off rule does not turn that into a success."""
+    the round-off rule does not turn that into a success. (The count is the
+    30 iterations of the loop and the one evaluation after it.)"""
     z, result, n = _fixed_point_iteration(lambda z: 2 * z + 1, jnp.asarray(0.5), 1e-12, 1e-12, 30, jnp.float64, True)
     assert result == pk.RESULTS.nonlinear_max_steps_reached
-    assert int(n) == 30
+    assert int(n) == 31
 
 
 def test_iterate_until_is_checked():
@@ -49,11 +50,12 @@ def test_iterate_until_is_checked():
         pk.PRKMK(pk.Cotangent(pk.SO3), iterate_until="exact")  # pyright: ignore[reportArgumentType]
 
 
-def _energy_errors(iterate_until, num_steps, batch=8, h=0.1):
+def _energy_errors(iterate_until, num_steps, batch=8, h=0.1, coordinates=pk.Exp(), running=False):
     """The largest relative energy error over `num_steps` steps of SV on the
-    free body, for `batch` random initial states (unit |Π|)."""
+    free body, for `batch` random initial states (unit |Π|); with `running`,
+    the largest up to each of 20 checkpoints (batch × 20)."""
     scene = FreeRigidBody()
-    method = pk.PRKMK(scene.bundle, pk.Exp(), pk.stormer_verlet, form="body", iterate_until=iterate_until)
+    method = pk.PRKMK(scene.bundle, coordinates, pk.stormer_verlet, form="body", iterate_until=iterate_until)
     rng = np.random.default_rng(5)
     momenta = rng.normal(size=(batch, 3))
     momenta /= np.linalg.norm(momenta, axis=1, keepdims=True)
@@ -64,7 +66,8 @@ def _energy_errors(iterate_until, num_steps, batch=8, h=0.1):
     trajectory = run(y0)
     assert bool(jnp.all(trajectory.result == pk.RESULTS.successful))
     energy = np.asarray(scene.invariants(trajectory.ys, inertia)["energy"])
-    return np.max(np.abs(energy / energy[:, :1] - 1), axis=1)
+    errors = np.abs(energy / energy[:, :1] - 1)
+    return np.maximum.accumulate(errors, axis=1)[:, 1:] if running else np.max(errors, axis=1)
 
 
 def test_energy_error_over_a_long_run_is_rounding_not_the_tolerance():
@@ -77,3 +80,21 @@ def test_energy_error_over_a_long_run_is_rounding_not_the_tolerance():
     to_round_off = _energy_errors("round-off", 100_000)
     assert np.median(by_tolerance) > 1e-11
     assert np.max(to_round_off) < 5e-13
+
+
+@pytest.mark.parametrize("coordinates", [pk.Exp(), pk.Cayley()], ids=["exp", "cayley"])
+def test_energy_error_grows_like_a_random_walk(coordinates):
+    """Brouwer's law: the median over 32 random states of the largest energy
+    error up to step N, fitted as N^p over N = 5·10³ … 10⁵: p near ½ (a
+    random walk of roundings) with the stages solved to round-off, near 1
+    (a bias) stopped at the tolerance. (`benchmarks/round_off.py` runs the
+    same to 10⁷ steps.)"""
+    num_steps = 100_000
+    checkpoints = np.arange(1, 21) * (num_steps // 20)
+
+    def exponent(iterate_until):
+        median = np.median(_energy_errors(iterate_until, num_steps, batch=32, coordinates=coordinates, running=True), axis=0)
+        return np.polyfit(np.log(checkpoints), np.log(median), 1)[0]
+
+    assert exponent("round-off") < 0.75
+    assert exponent("tolerance") > 0.9

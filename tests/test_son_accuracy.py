@@ -133,12 +133,27 @@ def test_dexp_and_dexp_inv_broadcast_batch_axes():
 
 
 # --- angles near π: agreement with SciPy relative to the condition number -----------------
+TWO_PLANES_FROM_PI = (
+    (1e-9, 1e-2),
+    (1e-6, 1e-2),
+    (1e-9, 1e-9),
+    (1e-6, 1e-3),
+    (1e-5, 1e-3),
+    (1e-9, 1e-6),
+    (1e-6, 1e-5),
+    (1e-8, 2e-8),
+    (1e-5, 1e-4),
+    (1e-4, 1e-3),
+)
+"""Distances from π of two rotation angles: far apart, equal, and close
+enough that their cosines (−1 + δ²/2) are closer than S's eigenvectors
+resolve."""
 NEAR_PI_CASES = [
     (n, angles)
     for n in (3, 4, 5)
     for angles in (
         [(np.pi - d,) for d in (1e-9, 1e-6, 1e-2)]
-        + ([(np.pi - a, np.pi - b) for a, b in ((1e-9, 1e-2), (1e-6, 1e-2), (1e-9, 1e-9), (1e-6, 1e-3), (1e-5, 1e-3))] if n >= 4 else [])
+        + ([(np.pi - a, np.pi - b) for a, b in TWO_PLANES_FROM_PI] if n >= 4 else [])
         + ([(np.pi - 1e-9, 0.5)] if n >= 4 else [])
     )
 ]
@@ -162,9 +177,7 @@ def _near_pi_rotation(n, angles, seed):
 def test_son_log_near_pi_agrees_with_scipy_within_the_condition_number(n, angles):
     """One or two angles at π − (1e-9 … 1e-2): log R against SciPy's
     `logm` of the same (rounded) matrix, relative error ≤ 1e-12·κ; and
-    exp(log R) = R to the same. (Two distinct angles both within about 1e-5
-    of π, whose cosines differ by less than the eigensolver resolves, are
-    outside this bound: `SOn.log` says so.)"""
+    exp(log R) = R to the same."""
     kappa = _condition_number(angles)
     for seed in range(3):
         r, _ = _near_pi_rotation(n, angles, seed)
@@ -240,3 +253,18 @@ def test_son_log_and_dexp_inv_gradients_are_finite_near_pi(n, angles):
     u = jnp.asarray(_generator(angles, n, _random_orthonormal(n, np.random.default_rng(3))))
     gradient = jax.grad(lambda w: jnp.sum(pk.SOn.dexp_inv(w, jnp.asarray(direction)) ** 2))(u)
     assert np.all(np.isfinite(np.asarray(gradient)))
+
+
+@pytest.mark.parametrize("angles", [(np.pi, np.pi), (2 * np.pi, 0.5), (1.5 * np.pi, 0.5 * np.pi)])
+def test_son_dexp_inv_refuses_a_u_where_dexp_is_not_invertible(angles):
+    """Angles summing to 2π (or one of 2π): an eigenvalue of ad_u is ±2πi, so
+    dexp_u has a kernel in so(4) and dexp⁻¹ does not exist: a clear error,
+    eagerly and under jit. At (π, π − 0.1) it exists and is finite."""
+    u = jnp.asarray(_generator(angles, 4, _random_orthonormal(4)))
+    v = jnp.asarray(_generator([0.7, -0.2], 4, _random_orthonormal(4)))
+    with pytest.raises(Exception, match="dexp_u is not invertible"):
+        jax.block_until_ready(pk.SOn.dexp_inv(u, v))
+    with pytest.raises(Exception, match="dexp_u is not invertible"):
+        jax.block_until_ready(jax.jit(pk.SOn.dexp_inv)(u, v))
+    fine = jnp.asarray(_generator((np.pi, np.pi - 0.1), 4, _random_orthonormal(4)))
+    assert np.all(np.isfinite(np.asarray(pk.SOn.dexp_inv(fine, v))))

@@ -279,6 +279,11 @@ class SO3(AbstractQuadraticGroup):
 
     @classmethod
     def cayley_adjoint(cls, u: Vector3, x: Vector3) -> Vector3:
-        """cay(û) x = x + 4/(4 + θ²) (u×x + ½ u×(u×x))."""
+        """cay(û) x = x + 4/(4 + θ²) (u×x + ½ u×(u×x)), by two cross
+        products (`_rotation_terms`). Not by (u·x)u − θ²x: along a free
+        rigid body's motion u·x is the same every step (u = hΩ, x = Π:
+        2hH), so its rounding is too, and |x| drifted by it steadily
+        (`benchmarks/round_off.py`)."""
         k = 4.0 / (4.0 + _theta_sq(u))
-        return x + k[..., None] * (jnp.cross(u, x) + 0.5 * _cross_twice(u, x))
+        ux, uux = _rotation_terms(u, x)
+        return x + k[..., None] * (ux + 0.5 * uux)

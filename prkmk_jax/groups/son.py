@@ -42,9 +42,40 @@ def _log_series_factor(distance):
     return acc
 
 
-def _dexp_inv_closed_form(u, v):
+def _singular_dexp(lam, dtype):
+    """Whether dexp_u is not invertible on so(n), from the eigenvalues λ of
+    iu (±θⱼ, and 0 for odd n): an eigenvalue of ad_u on so(n), ±iθⱼ or
+    ±i(θⱼ ± θₖ) for j ≠ k, is a nonzero multiple of 2πi, to within the
+    rounding of the angles (then z/(eᶻ − 1) has no digit left)."""
+    n = lam.shape[-1]
+    thetas = jnp.abs(lam[..., n - n // 2 :])  # the ⌊n/2⌋ largest, one per plane
+    alphas = [thetas[..., j] for j in range(n // 2)]
+    for j in range(n // 2):
+        for k in range(j + 1, n // 2):
+            alphas += [thetas[..., j] + thetas[..., k], jnp.abs(thetas[..., j] - thetas[..., k])]
+    eps = float(jnp.finfo(dtype).eps)
+    singular = jnp.zeros(lam.shape[:-1], bool)
+    for alpha in alphas:
+        turns = jnp.round(alpha / (2 * math.pi))
+        singular = singular | ((turns >= 1) & (jnp.abs(alpha - 2 * math.pi * turns) <= 64 * eps * jnp.maximum(alpha, 1.0)))
+    return singular
+
+
+def _dexp_inv_closed_form(u, v, check=None):
+    """dexp⁻¹_u v through the eigendecomposition of iu (`SOn.dexp_inv`).
+    Where `check` (a boolean per matrix; default everywhere) is set, a u at
+    which dexp_u is not invertible raises (`eqx.error_if`)."""
     complex_dtype = jnp.result_type(u.dtype, jnp.complex64)
     lam, vecs = jnp.linalg.eigh(1j * u.astype(complex_dtype))
+    singular = _singular_dexp(lam, u.dtype)
+    if check is not None:
+        singular = singular & check
+    vecs = eqx.error_if(
+        vecs,
+        singular,
+        "SOn.dexp_inv: dexp_u is not invertible at this u: an eigenvalue of ad_u (±iθⱼ or ±i(θⱼ ± θₖ) for its rotation "
+        "angles θ) is a nonzero multiple of 2πi. As an increment, u is too large a step.",
+    )
     z = -1j * (lam[..., :, None] - lam[..., None, :])
     small = jnp.abs(z) < 1e-3
     safe = jnp.where(small, 1.0, z)
@@ -79,28 +110,58 @@ def _eye_like(m):
 def _log(r):
     """The principal logarithm's value (`SOn.log`)."""
     n = r.shape[-1]
+    dtype = r.dtype
+    eps = float(jnp.finfo(dtype).eps)
     sym = 0.5 * (r + _transpose(r))
     skew = 0.5 * (r - _transpose(r))
     distance = _eye_like(r) - sym
     near_identity = jnp.sum(distance**2, axis=(-2, -1)) < NEAR_IDENTITY**2
     # S = W diag(c) Wᵀ; in that basis A is block diagonal (a block per
-    # eigenvalue cluster of S, sin θ·J on a plane of angle θ).
+    # eigenvalue of S, sin θ·J on each plane of angle θ).
     c, w = jnp.linalg.eigh(sym)
     c = jnp.clip(c, -1.0, 1.0)
     rotated = _transpose(w) @ skew @ w
+    sine = jnp.sqrt(jnp.sum(rotated**2, axis=-2))
+    # Near π, cos θ = −1 + δ²/2 separates planes by δ² only, and S's
+    # eigenvectors mix planes whose δ differ by eps/Δc: in clusters of such
+    # eigenvalues the planes come from A instead, the eigenvectors of −A²
+    # (eigenvalues sin²θ, apart to first order in δ) restricted to the
+    # cluster. Taking two eigenvalues Δc apart as one moves the angle
+    # atan2(s, c) by about Δc·s; neighbours join where that is below the
+    # eps/Δc the eigenvectors of S would cost, Δc²·s < eps. A shift by 4 per
+    # cluster keeps the clusters' spectra apart.
+    near_pi = c < -0.5
+    difference = c[..., 1:] - c[..., :-1]
+    join = near_pi[..., 1:] & near_pi[..., :-1] & (difference**2 * jnp.maximum(sine[..., 1:], sine[..., :-1]) < eps)
+    label = jnp.concatenate([jnp.zeros_like(c[..., :1]), jnp.cumsum(jnp.where(join, 0.0, 1.0), axis=-1)], axis=-1)
+    same = label[..., :, None] == label[..., None, :]
+    size = jnp.sum(same, axis=-1)
+    refined = near_pi & (size >= 4)  # two planes or more; a single plane is handled below
+    in_cluster = same & refined[..., :, None] & refined[..., None, :]
+    masked = jnp.where(in_cluster, rotated, 0.0)
+    shifted = -(masked @ masked) + 4.0 * jnp.eye(n, dtype=dtype) * label[..., None, :]
+    _, x = jnp.linalg.eigh(shifted)
+    w = w @ x
+    rotated = _transpose(x) @ rotated @ x
+    c = jnp.clip(jnp.einsum("...ki,...k,...ki->...i", x, c, x), -1.0, 1.0)
+    refined = jnp.einsum("...ki,...k->...i", x**2, refined.astype(dtype)) > 0.5
+    label = jnp.einsum("...ki,...k->...i", x**2, label)
+    in_cluster = jnp.abs(label[..., :, None] - label[..., None, :]) < 0.5
     # General formula: θ_k J = (θ_k / sin θ_k) A on each eigenvector w_k, with
     # sin θ_k = |A w_k| (accurate to round-off in absolute terms, unlike
-    # √(1 − c²) near c = −1) and θ_k = atan2(sin θ_k, c_k).
+    # √(1 − c²) near c = −1) and θ_k = atan2(sin θ_k, c_k). Entries between a
+    # refined cluster and the rest are rounding (A keeps the cluster's space)
+    # and are dropped.
     sine = jnp.sqrt(jnp.sum(rotated**2, axis=-2))
     positive = sine > 0
     ratio = jnp.where(positive, jnp.arctan2(sine, c) / jnp.where(positive, sine, 1.0), 1.0)
     general = 0.5 * (ratio[..., :, None] * rotated + rotated * ratio[..., None, :])
-    # Planes near π: there A ≈ 0 carries J with a relative error eps/sin θ, and
-    # the plane itself (eigenvectors 2p, 2p+1 of S, whose eigenvalues come in
-    # equal pairs, ascending) gives θJ to eps/gap instead: J = ±(b aᵀ − a bᵀ),
-    # the sign of bᵀAa, θ = atan2(|bᵀAa|, c). Taken where the pair stands
-    # apart from its neighbours by more than sin θ.
-    log_rotated = general
+    crossing = (refined[..., :, None] | refined[..., None, :]) & ~in_cluster
+    log_rotated = jnp.where(crossing, 0.0, general)
+    # A single plane near π: there A ≈ 0 carries J with a relative error
+    # eps/sin θ, and the plane itself (eigenvectors 2p, 2p+1 of S, whose
+    # eigenvalues come in equal pairs, ascending) gives θJ to eps/gap instead:
+    # J = ±(b aᵀ − a bᵀ), the sign of bᵀAa, θ = atan2(|bᵀAa|, c).
     pair_sine = [jnp.abs(rotated[..., 2 * p + 1, 2 * p]) for p in range(n // 2)]
     for p in range(n // 2):
         i, j = 2 * p, 2 * p + 1
@@ -121,11 +182,11 @@ def _log(r):
         distinct = jnp.ones_like(cos_ab, dtype=bool)
         for other in neighbours:
             distinct = distinct & (jnp.abs(other - jnp.abs(sin_ab)) > 0.25 * jnp.maximum(other, jnp.abs(sin_ab)))
-        use_plane = (cos_ab < 0) & ((gap > jnp.abs(sin_ab)) | distinct)
-        sign = jnp.where(sin_ab >= 0, 1.0, -1.0).astype(r.dtype)
+        use_plane = (cos_ab < 0) & ((gap > jnp.abs(sin_ab)) | distinct) & ~refined[..., i] & ~refined[..., j]
+        sign = jnp.where(sin_ab >= 0, 1.0, -1.0).astype(dtype)
         in_plane = (jnp.arange(n) == i) | (jnp.arange(n) == j)
         touches = in_plane[:, None] | in_plane[None, :]
-        block = jnp.zeros((n, n), r.dtype).at[j, i].set(1.0).at[i, j].set(-1.0)
+        block = jnp.zeros((n, n), dtype).at[j, i].set(1.0).at[i, j].set(-1.0)
         plane = (sign * theta)[..., None, None] * block
         log_rotated = jnp.where(use_plane[..., None, None] & touches, plane, log_rotated)
     log_rotated = 0.5 * (log_rotated - _transpose(log_rotated))
@@ -178,19 +239,21 @@ class SOn(AbstractQuadraticGroup):
           eigendecomposition, so that gradients are finite at R = I;
         * elsewhere, in the eigenbasis of S: on each eigenvector w,
           θ = atan2(|Aw|, c) and θJ = (θ/|Aw|)·A;
-        * on a plane whose angle is near π (c < 0), where A ≈ 0 carries J
-          with a relative error eps/sin θ, and whose pair of eigenvalues
-          stands apart from the others by more than sin θ, θJ is built from
-          the plane itself (its eigenvectors a, b: J = ±(baᵀ − abᵀ), the sign
-          of bᵀAa, θ = atan2(|bᵀAa|, c)), accurate to eps/gap. At θ = π
-          exactly either sign is a logarithm.
+        * on a single plane whose angle is near π (c < 0), where A ≈ 0
+          carries J with a relative error eps/sin θ, and whose pair of
+          eigenvalues stands apart from the others, θJ is built from the
+          plane itself (its eigenvectors a, b: J = ±(baᵀ − abᵀ), the sign of
+          bᵀAa, θ = atan2(|bᵀAa|, c)), accurate to eps/gap. At θ = π exactly
+          either sign is a logarithm;
+        * two or more planes near π whose cosines (−1 + δ²/2) are too close
+          for S's eigenvectors to tell them apart are separated by the
+          eigenvectors of −A² (eigenvalues sin²θ ≈ δ²) within their cluster.
 
         Its error is of the order of eps times the condition number of log
-        at R (the norm of dexp⁻¹ at log R, which grows like 1/(2π − θᵢ − θⱼ)
-        as two angles approach π together; at −I in SO(4) log is not unique),
-        except for two *distinct* angles π − δᵢ, π − δⱼ both so close to π
-        that their cosines (−1 + δ²/2) are closer than the eigensolver of S
-        resolves: the error is then about eps/|δᵢ² − δⱼ²|.
+        at R: the norm of dexp⁻¹ at log R, which grows like
+        1/(2π − θᵢ − θⱼ) as two angles approach π together (at −I in SO(4)
+        log is not unique). `tests/test_son_accuracy.py` checks this against
+        SciPy's `logm` for one or two angles within 1e-9 … 1e-2 of π.
 
         Its derivative is not that of these formulas (the eigendecomposition
         of S, whose eigenvalues come in equal pairs, has none) but
@@ -250,9 +313,10 @@ class SOn(AbstractQuadraticGroup):
         the rounding that entries of Ṽ outside so(n) (pairs of conjugate
         eigenvectors, z = 2iθ, large as θ → π) would add. Accurate to eps
         times the condition number (the largest |z/(eᶻ − 1)| over ad_u's
-        eigenvalues on so(n), ±i(θⱼ ± θₖ), ±iθⱼ) up to angles of π. (Its
-        gradient needs distinct eigenvalues of iu, as any
-        eigendecomposition's does.)"""
+        eigenvalues on so(n), ±i(θⱼ ± θₖ), ±iθⱼ) up to angles of π. Where one
+        of those eigenvalues is a nonzero multiple of 2πi, dexp_u is not
+        invertible and it raises (`eqx.error_if`). (Its gradient needs
+        distinct eigenvalues of iu, as any eigendecomposition's does.)"""
         u, v = jnp.broadcast_arrays(u, v)
         large = jnp.sum(u**2, axis=(-2, -1)) > SERIES_RADIUS**2
         series_u = jnp.where(large[..., None, None], 0.0, u)
@@ -262,7 +326,7 @@ class SOn(AbstractQuadraticGroup):
         n = u.shape[-1]
         harmless = jnp.zeros((n, n), u.dtype).at[jnp.triu_indices(n, 1)].set(jnp.arange(1, n * (n - 1) // 2 + 1, dtype=u.dtype))
         harmless = harmless - harmless.T
-        closed = _dexp_inv_closed_form(jnp.where(large[..., None, None], u, harmless), v)
+        closed = _dexp_inv_closed_form(jnp.where(large[..., None, None], u, harmless), v, check=large)
         return jnp.where(large[..., None, None], closed, series)
 
     @classmethod
