@@ -83,9 +83,9 @@ def _dexp_inv_closed_form(u, v, check=None):
     # At z = 2πik the entry belongs to a pair of conjugate eigenvectors
     # (λⱼ = −λₖ = iθ, θ = π), whose direction wⱼwⱼᵀ is symmetric: a skew v
     # has no component there, only rounding. Zero it instead of dividing by 0.
-    singular = jnp.abs(denominator) == 0
+    vanishing = jnp.abs(denominator) == 0
     # z/(eᶻ − 1) = 1 − z/2 + z²/12 − z⁴/720 + …
-    factor = jnp.where(small, 1 - z / 2 + z**2 / 12, jnp.where(singular, 0.0, safe / jnp.where(singular, 1.0, denominator)))
+    factor = jnp.where(small, 1 - z / 2 + z**2 / 12, jnp.where(vanishing, 0.0, safe / jnp.where(vanishing, 1.0, denominator)))
     rotated = jnp.conj(_transpose(vecs)) @ v.astype(complex_dtype) @ vecs
     out = jnp.real(vecs @ (factor * rotated) @ jnp.conj(_transpose(vecs))).astype(u.dtype)
     # The rounding of those symmetric directions, multiplied by the large
