@@ -63,9 +63,10 @@ class PRKMK(AbstractMethod):
       would bias every step the same way). The stages are then solved as
       exactly as rounding allows, so a
       symmetric or symplectic method is symmetric or symplectic to
-      round-off, and its energy error grows like the random walk of the
-      rounding errors (√N over N steps) instead of steadily with a bias set
-      by the tolerance. `"tolerance"`: it stops at `rtol`/`atol`, a few
+      round-off, and its energy error grows about as the random walk of
+      the rounding errors does (√N over N steps) instead of steadily with a
+      bias set by the tolerance (`benchmarks/round_off.py` fits the
+      exponent). `"tolerance"`: it stops at `rtol`/`atol`, a few
       iterations a step sooner (`benchmarks/round_off.py` measures both).
       An optimistix `root_finder` stops by its own tolerances.
     - `max_iterations`: iteration cap of each implicit block's loop (with
@@ -481,10 +482,10 @@ def _solve_fixed_point(settings, static, guess, dynamic):
         # One more evaluation, outside the loop: XLA compiles the loop body
         # apart from the rest of the step and may round the same formula
         # differently there (fusion, contraction). The step's update rounds
-        # as this evaluation does, so the slopes are a fixed point of the
-        # arithmetic that makes the new state, and no rounding difference
-        # between the two biases every step the same way (the energy of a
-        # long run then grows like √N: `benchmarks/round_off.py`).
+        # as this evaluation does, so the slopes are closer to a fixed point
+        # of the arithmetic that makes the new state, and less of a rounding
+        # difference between the two biases every step the same way
+        # (`benchmarks/round_off.py` fits how a long run's energy error grows).
         z = closed_fn(z)
         n = n + 1
     return z, error, n
