@@ -114,37 +114,44 @@ def invariant_errors(invariants):
     return errors
 
 
-def log_spaced(checkpoints, values, count=80):
-    """The entries of `values` at about `count` checkpoints spaced evenly in
+def log_spaced_picks(steps, smallest, count):
+    """The indices of the entries of `steps` nearest to `count` points spaced
+    evenly in log(steps) from `smallest` to the last, ascending, each once."""
+    targets = np.exp(np.linspace(np.log(smallest), np.log(steps[-1]), count))
+    return sorted({int(np.argmin(np.abs(np.log(steps) - np.log(t)))) for t in targets})
+
+
+def stored(row, checkpoints, errors, count=80):
+    """`row` with the exponents fitted on every checkpoint, and the
+    checkpoints and errors thinned to about `count` spaced evenly in
     log(checkpoints), the last included: what the results file keeps."""
     checkpoints = np.asarray(checkpoints)
-    targets = np.exp(np.linspace(np.log(checkpoints[0]), np.log(checkpoints[-1]), count))
-    picks = sorted({int(np.argmin(np.abs(np.log(checkpoints) - np.log(t)))) for t in targets} | {len(checkpoints) - 1})
-    return [int(checkpoints[i]) for i in picks], [float(values[i]) for i in picks]
-
-
-def stored(row, checkpoints, errors):
-    """`row` with the checkpoints and errors thinned by `log_spaced` and the
-    exponents fitted on all of them."""
+    picks = sorted(set(log_spaced_picks(checkpoints, checkpoints[0], count)) | {len(checkpoints) - 1})
     row["exponent"] = {k: exponent(checkpoints, v) for k, v in errors.items()}
-    row["errors"] = {}
-    for k, v in errors.items():
-        row["checkpoints"], row["errors"][k] = log_spaced(checkpoints, v)
+    row["checkpoints"] = [int(checkpoints[i]) for i in picks]
+    row["errors"] = {k: [float(v[i]) for i in picks] for k, v in errors.items()}
     return row
+
+
+def growth_row(row, errors, every):
+    """`stored` for errors saved every `every` steps from step 0 (left out),
+    and the line that reports it."""
+    saved = np.arange(len(next(iter(errors.values())))) * every
+    row = stored(row, saved[1:], {k: v[1:] for k, v in errors.items()})
+    return row, "  ".join(f"{k}: {row['errors'][k][-1]:.1e} ({row['exponent'][k]:.2f})" for k in errors)
 
 
 def exponent(steps, errors, smallest=10_000):
     """Least-squares slope of log(error) against log(steps), over steps ≥
     `smallest`, at points spaced evenly in log(steps)."""
     steps, errors = np.asarray(steps, float), np.asarray(errors, float)
-    targets = np.exp(np.linspace(np.log(smallest), np.log(steps[-1]), 13))
-    picks = sorted({int(np.argmin(np.abs(np.log(steps) - np.log(t)))) for t in targets})
+    picks = log_spaced_picks(steps, smallest, 13)
     if len(picks) < 2:
         return float("nan")
     return float(np.polyfit(np.log(steps[picks]), np.log(np.maximum(errors[picks], 1e-300)), 1)[0])
 
 
-def cost(method, scene_name, batch, num_steps, rounds, setting_methods):
+def cost(scene_name, batch, num_steps, rounds, setting_methods):
     """ns per trajectory-step and iterations a step of each setting, interleaved."""
     scene, args = SCENES[scene_name]
     y0 = initial_states(batch) if batch > 1 else jax.tree.map(lambda a: a[0], initial_states(1))
@@ -201,19 +208,16 @@ def dopri8_at_equal_cost(sv, num_steps, batch, every, probe_steps):
     sv_fn = jax.jit(jax.vmap(sv_run))
     d8_fn = jax.jit(jax.vmap(lambda z: dopri8(z, probe_steps * h, h, probe_ts)))
     jax.block_until_ready((sv_fn(y0), d8_fn(z0)))
-    sv_times, d8_times = [], []
-    for _ in range(3):  # alternating, so that a slow spell hits both
-        sv_times += C.interleaved_times({"sv": sv_fn}, y0, rounds=1)["sv"]
-        d8_times += C.interleaved_times({"d8": d8_fn}, z0, rounds=1)["d8"]
-    sv_ns = float(np.median(sv_times)) / (batch * probe_steps) * 1e9
-    d8_ns = float(np.median(d8_times)) / (batch * probe_steps) * 1e9
+    times = C.interleaved_times({"SV": lambda: sv_fn(y0), "Dopri8": lambda: d8_fn(z0)}, rounds=3)
+    ns = C.ns_per_trajectory_step(times, batch, probe_steps)
+    sv_ns, d8_ns = ns["SV"], ns["Dopri8"]
     dt = h * d8_ns / sv_ns  # equal cost per unit time: fewer, dearer steps
     ts = np.arange(0, num_steps // every + 1) * every * h
     t_end, saves = float(ts[-1]), jnp.asarray(ts)
     zs = jax.jit(jax.vmap(lambda z: dopri8(z, t_end, dt, saves)))(z0)
     q, pi = zs[..., :9].reshape(*zs.shape[:-1], 3, 3), zs[..., 9:]
     errors = invariant_errors(FREE.invariants(pk.BundleElement(pk.SO3(q), pi), inertia))
-    return errors, dt, {"SV": sv_ns, "Dopri8": d8_ns}
+    return errors, dt, ns
 
 
 def chart(rows, dopri, out):
@@ -260,29 +264,23 @@ def main(argv=None):
             scene_name, method = by_setting[setting][name]
             steps = long_steps if (name == "SV exp" and setting == "round-off") else max_steps
             errors, seconds = growth(method, scene_name, steps, batch, every)
-            saved = np.arange(len(next(iter(errors.values())))) * every
             row = dict(method=name, scene=scene_name, setting=setting, dtype="float64", batch=batch, steps=steps, seconds=seconds)
-            row = stored(row, saved[1:], {k: v[1:] for k, v in errors.items()})
+            row, summary = growth_row(row, errors, every)
             growth_rows.append(row)
-            summary = "  ".join(f"{k}: {row['errors'][k][-1]:.1e} ({row['exponent'][k]:.2f})" for k in errors)
             print(f"{name:28s} {setting:10s} {steps:9d} {seconds:7.1f}  {summary}", flush=True)
     # float32: SV exp, both settings (the step renormalises the state there).
     for setting in SETTINGS:
         scene_name, method = by_setting[setting]["SV exp"]
         errors, seconds = growth(method, scene_name, max_steps, batch, every, jnp.float32)
-        saved = np.arange(len(next(iter(errors.values())))) * every
         row = dict(method="SV exp", scene=scene_name, setting=setting, dtype="float32", batch=batch, steps=max_steps, seconds=seconds)
-        row = stored(row, saved[1:], {k: v[1:] for k, v in errors.items()})
+        row, summary = growth_row(row, errors, every)
         growth_rows.append(row)
-        summary = "  ".join(f"{k}: {row['errors'][k][-1]:.1e} ({row['exponent'][k]:.2f})" for k in errors)
         print(f"{'SV exp, float32':28s} {setting:10s} {max_steps:9d} {seconds:7.1f}  {summary}", flush=True)
 
     probe = 500 if quick else 20_000
     dopri_errors, dopri_dt, dopri_cost = dopri8_at_equal_cost(by_setting["round-off"]["SV exp"][1], max_steps, batch, every, probe)
-    saved = np.arange(len(dopri_errors["energy"])) * every
     dopri = dict(method="Dopri8, equal cost", dt=dopri_dt, ns_per_traj_step=dopri_cost, steps_of_sv=max_steps)
-    dopri = stored(dopri, saved[1:], {k: v[1:] for k, v in dopri_errors.items()})
-    summary = "  ".join(f"{k}: {dopri['errors'][k][-1]:.1e} ({dopri['exponent'][k]:.2f})" for k in dopri_errors)
+    dopri, summary = growth_row(dopri, dopri_errors, every)
     print(f"{'Dopri8, equal cost':28s} {'h=' + format(dopri_dt, '.3f'):10s} {max_steps:9d} {'':7s}  {summary}", flush=True)
     chart(growth_rows, dopri, out)
 
@@ -293,7 +291,7 @@ def main(argv=None):
         for cost_batch in (1, 4) if quick else (1, 64):
             scene_name = by_setting["round-off"][name][0]
             steps = 20 if quick else max(200, 20_000 // cost_batch)
-            row = cost(None, scene_name, cost_batch, steps, rounds, {s: by_setting[s][name][1] for s in SETTINGS})
+            row = cost(scene_name, cost_batch, steps, rounds, {s: by_setting[s][name][1] for s in SETTINGS})
             row.update(method=name, scene=scene_name, batch=cost_batch, steps=steps)
             cost_rows.append(row)
             ns, it = row["ns_per_traj_step"], row["iterations_per_step"]

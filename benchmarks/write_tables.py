@@ -194,10 +194,15 @@ def _ratio(library, diffrax) -> str:
     return f"{library[2] / diffrax[2]:.2f}" + (" **(slower)**" if library[2] > diffrax[2] else "")
 
 
+def results_file(name: str, root: Path | None = None) -> dict:
+    """The results file `benchmarks/results/<name>`, read."""
+    return json.loads(((root or ROOT) / "benchmarks" / "results" / name).read_text())
+
+
 def stage_layout_table(_entries=None, root: Path | None = None) -> str:
     """`stage_layout.py`'s results: ns per trajectory-step of an explicit
     tableau's stages unrolled and in a loop."""
-    data = json.loads(((root or ROOT) / "benchmarks" / "results" / "stage_layout.json").read_text())
+    data = results_file("stage_layout.json", root)
     device = device_name(data["machine"])
     lines = [
         "| scene | tableau | regime | device | unrolled, ns | loop, ns | loop / unrolled | compile unrolled, s | compile loop, s |",
@@ -215,7 +220,7 @@ def stage_layout_table(_entries=None, root: Path | None = None) -> str:
 def revision_table(_entries=None, root: Path | None = None, name: str = "against_revision_heavy_top.json") -> str:
     """`against_revision.py`'s results: ns per trajectory-step now and at
     the earlier revision, interleaved."""
-    data = json.loads(((root or ROOT) / "benchmarks" / "results" / name).read_text())
+    data = results_file(name, root)
     device = device_name(data["machine"])
     lines = [
         f"| scene | tableau | coordinates | path | batch | device | now, ns | at {data['sha']}, ns | now / before |",
@@ -235,7 +240,7 @@ def round_off_table(_entries=None, root: Path | None = None) -> str:
     number of steps (the largest error at the last step and the fitted
     exponent), for the stages solved to round-off and stopped at the
     tolerance, and Dopri8 at equal cost."""
-    data = json.loads(((root or ROOT) / "benchmarks" / "results" / "round_off.json").read_text())
+    data = results_file("round_off.json", root)
     lines = [
         "| method | scene | stages | dtype | trajectories | steps | largest error at the last step (growth exponent) |",
         "|---|---|---|---|---|---|---|",
@@ -254,7 +259,7 @@ def round_off_cost_table(_entries=None, root: Path | None = None) -> str:
     """`round_off.py`'s cost rows: ns per trajectory-step and iterations a
     step with the stages solved to round-off and stopped at the tolerance,
     interleaved."""
-    data = json.loads(((root or ROOT) / "benchmarks" / "results" / "round_off.json").read_text())
+    data = results_file("round_off.json", root)
     device = device_name(data["machine"])
     lines = [
         "| method | trajectories | device | round-off, ns | tolerance, ns | round-off / tolerance "

@@ -90,11 +90,11 @@ class AbstractMethod(eqx.Module):
     def is_symmetric(self) -> bool:
         """Whether the method is symmetric (Φ_{−h} ∘ Φ_h = id) by its
         construction, whatever the problem: `Symmetrized`, a `Splitting`, and
-        compositions and adjoints of these (or a composition whose base the user
-        declares symmetric, `Composition(assume_symmetric_base=True)`). False
-        for a PRKMK method, whose
-        symmetry depends on the tableau, the coordinate map and the field
-        (`symmetry_defect` measures it on a problem)."""
+        compositions and adjoints of these (or a composition whose base the
+        user declares symmetric, `Composition(assume_symmetric_base=True)`).
+        False for a PRKMK method, whose symmetry depends on the tableau, the
+        coordinate map and the field (`symmetry_defect` measures it on a
+        problem)."""
 
     @abc.abstractmethod
     def initial_guesses(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None) -> Any:

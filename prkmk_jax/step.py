@@ -61,13 +61,13 @@ class PRKMK(AbstractMethod):
       compiled program as the step's update (the loop body is compiled
       apart and may round the same formula differently, a difference that
       would bias every step the same way). The stages are then solved as
-      exactly as rounding allows, so a
-      symmetric or symplectic method is symmetric or symplectic to
-      round-off, and its energy error grows about as the random walk of
-      the rounding errors does (√N over N steps) instead of steadily with a
-      bias set by the tolerance (`benchmarks/round_off.py` fits the
-      exponent). `"tolerance"`: it stops at `rtol`/`atol`, a few
-      iterations a step sooner (`benchmarks/round_off.py` measures both).
+      exactly as rounding allows, so a symmetric or symplectic method is
+      symmetric or symplectic to round-off, and its energy error grows
+      about as the random walk of the rounding errors does (√N over N
+      steps) instead of steadily with a bias set by the tolerance.
+      `"tolerance"`: it stops at `rtol`/`atol`, a few iterations a step
+      sooner. `benchmarks/round_off.py` measures both: the growth exponent
+      and the cost.
       An optimistix `root_finder` stops by its own tolerances.
     - `max_iterations`: iteration cap of each implicit block's loop (with
       `iterate_until="round-off"` one more evaluation follows it).
@@ -422,9 +422,9 @@ def _fixed_point_iteration(fn, guess, rtol, atol, max_iterations, dtype, until_r
     loop. At most `max_iterations` times in the loop; a success when the
     last eₖ < 1. Returns (z, result, iterations).
 
-    A bare `lax.while_loop` carrying only the iterate, its error and a counter:
-    under `vmap` every carried value costs a select per iteration, so this
-    carries no more. Derivatives come from the implicit function theorem, as
+    A bare `lax.while_loop` carrying only the iterate, its error, the
+    previous error and a counter: under `vmap` every carried value costs a
+    select per iteration, so this carries no more. Derivatives come from the implicit function theorem, as
     a `jax.custom_jvp` whose rule is traced only when the step is
     differentiated: the tangent system (I − ∂fn/∂z)ż = ∂fn/∂θ·θ̇, and in
     reverse mode its transpose, are solved by the same fixed-point iteration
