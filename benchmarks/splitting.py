@@ -404,6 +404,9 @@ class _Reordered(pk.exact_flows.AbstractSplitScene):
     def form(self):
         return self.scene.form
 
+    def checked_args(self, args):
+        return self.scene.checked_args(args)
+
     def __call__(self, t, y, args):
         return self.scene(t, y, args)  # type: ignore[operator]
 

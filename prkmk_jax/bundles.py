@@ -206,9 +206,8 @@ class AbstractBundle(eqx.Module):
         stage that no L enters, as for a field with η ≡ 0). The product then
         skips the fiber part of exp(u, 0), which is zero but would cost its
         arithmetic: XLA does not fold 0·x for floats. On G ⋉ g that part is
-        dexp_{∓u}(v); skipping it, the free body's steps on T*SO(3) took
-        0.64–0.87× the time at batch 64 and 1024 (`benchmarks/README.md`,
-        `against_revision.py`)."""
+        dexp_{∓u}(v); skipping it makes the free body's step on T*SO(3)
+        quicker (`benchmarks/against_revision.py` measures it)."""
 
     @abc.abstractmethod
     def cayley_multiply(self, U: Increment, y: BundleElement, form: Literal["space", "body"]) -> BundleElement:

@@ -8,7 +8,7 @@ from jax.core import Tracer
 from jaxtyping import Array, Float, Int, PyTree, Real
 
 from .bundles import BundleElement
-from .method import RESULTS, AbstractMethod, Time, VectorField, first_failure
+from .method import RESULTS, AbstractFieldOnBundle, AbstractMethod, Time, VectorField, first_failure
 from .step import STAGE_SLOPES_NAME
 
 
@@ -170,6 +170,8 @@ def _checked_start(method, vector_field, y, t, dt, args):
     dt = _checked_dt(dt, dtype)
     args = _check_args(args)
     method.check_fits(vector_field)
+    if isinstance(vector_field, AbstractFieldOnBundle):
+        args = vector_field.checked_args(args)
     method.check_vector_field(vector_field, t, y, args)
     return y, t, dt, args
 

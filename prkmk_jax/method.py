@@ -48,6 +48,14 @@ class AbstractFieldOnBundle(eqx.Module):
     form: eqx.AbstractVar[Literal["space", "body"]]
     """Whether the generator acts from the left (space) or right (body)."""
 
+    @abc.abstractmethod
+    def checked_args(self, args: PyTree, /) -> PyTree:
+        """`args` after this field's checks of its parameters: a type or shape
+        that does not fit raises `TypeError`/`ValueError` at trace time, a
+        value out of range (a moment of inertia that is not > 0) raises at
+        run time through `eqx.error_if`, whose output this returns. The
+        drivers (`integrate`, `resume`, `PRKMKSolver`) call it once a run."""
+
 
 def tree_scale(alpha, tree):
     """alpha·tree, leaf by leaf."""

@@ -108,9 +108,9 @@ def _step_map(method, field, bundle, h, inertia):
 
 def method_of(run: Run) -> PRKMK:
     """The symmetric body on SO(3)² at h = 0.1 has h·Lip ≈ 0.8: fixed-point
-    iteration needs ~94 iterations a step there (measured), Newton 4. The
-    other runs converge in ≤ 24 fixed-point iterations, cheaper than Newton's
-    dense Jacobians (on SO(4)² Newton was several times slower)."""
+    iteration needs about 94 iterations a step there, Newton 4. The other
+    runs converge in ≤ 24 fixed-point iterations, cheaper than Newton's
+    dense Jacobians (on SO(4)² Newton is the slower of the two)."""
     root_finder = optx.Newton(rtol=1e-12, atol=1e-12) if (run.scene == "symmetric" and run.n == 3) else None
     return scene_of(run).method(run.tableau, COORDINATES[run.coordinates], root_finder=root_finder)
 

@@ -16,7 +16,7 @@ from jaxtyping import Array
 
 from .bundles import AlgebraPair, BundleElement
 from .interpolation import OnGroupInterpolation
-from .method import AbstractMethod, first_failure, tree_scale
+from .method import AbstractFieldOnBundle, AbstractMethod, first_failure, tree_scale
 
 DENSE_OUTPUT_TRUNCATION_ORDER = 4
 """Dense output evaluates df⁻¹ at the step's end truncated as for a method of
@@ -159,6 +159,9 @@ class PRKMKSolver(diffrax.AbstractSolver):
         # finite, orthogonal, det +1 base) act through the checked value, so
         # the solver state is computed from it: an invalid y0 raises.
         y0 = method.bundle.check(y0)
+        # A scene's parameters: static errors now, run-time checks through the
+        # checked value (kept alive below, with y0's).
+        checked_args = term.vector_field.checked_args(args) if isinstance(term.vector_field, AbstractFieldOnBundle) else None
         method.check_vector_field(field, field.direction * t0, y0, args)
         # The solver state is what `PRKMK.step_with_guesses` carries: the
         # previous step's field at its start and its stage slopes, the implicit
@@ -168,7 +171,8 @@ class PRKMKSolver(diffrax.AbstractSolver):
         # attitude), and XLA would then drop those checks as dead code. A zero
         # that depends on every checked entry keeps them alive (XLA does not fold
         # 0·x for floats; x is finite once the checks have passed).
-        zero = jnp.asarray(sum(jnp.sum(leaf) for leaf in jax.tree.leaves(y0))) * 0
+        checked = [leaf for leaf in jax.tree.leaves((y0, checked_args)) if eqx.is_inexact_array(leaf)]
+        zero = jnp.asarray(sum(jnp.sum(leaf) for leaf in checked)) * 0
         return jax.tree.map(lambda x: x + zero.astype(x.dtype), carried)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):

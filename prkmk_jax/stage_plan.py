@@ -223,8 +223,8 @@ def _merge_shared_stages(plan: list) -> list:
     """Join two implicit parts that evaluate a common stage, with what lies
     between them, into one. Split, each would evaluate that stage every
     iteration and each needs about as many iterations as the joint solve
-    (measured: the free body on G×g with Lobatto IIIA–IIIB 4 took 19
-    iterations of two stages a step split, 10 of three joint)."""
+    (the free body on G×g with Lobatto IIIA–IIIB 4: 19 iterations of two
+    stages a step split, 10 of three joint)."""
     while True:
         implicit = [k for k, part in enumerate(plan) if isinstance(part, Implicit)]
         shared = next(

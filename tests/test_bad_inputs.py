@@ -15,7 +15,7 @@ import pytest
 
 import prkmk_jax as pk
 from helpers import INERTIA, PositiveReals, initial_state, rigid_body_field
-from prkmk_jax.scenes import ForcedParameters, ForcedRigidBody, FreeRigidBody, HeavyTop, TopParameters
+from prkmk_jax.scenes import ForcedParameters, ForcedRigidBody, FreeRigidBody, HeavyTop, SymmetricRigidBody, TopParameters
 
 COTANGENT = pk.Cotangent(pk.SO3)
 FIELD = rigid_body_field(COTANGENT, "body")
@@ -40,6 +40,8 @@ TOP = HeavyTop()
 TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
 TOP_ON_G_X_G_METHOD = HeavyTop(pk.DirectProduct(pk.SO3)).method(pk.stormer_verlet)
 FREE_BODY = FreeRigidBody()
+SYMMETRIC_SO4 = SymmetricRigidBody(pk.Cartesian(pk.SOn))
+SO4_STATE = pk.BundleElement(pk.SOn(jnp.eye(4)), pk.SOn(jnp.eye(4)))
 SPACE_FORM_METHOD = pk.PRKMK(COTANGENT, tableau=pk.stormer_verlet)  # form="space" by default
 
 
@@ -117,6 +119,31 @@ STATIC = {
     # scene parameters
     "heavy top lever of shape (2,)": (lambda: TopParameters(TOP_ARGS.inertia, jnp.array([0.1, 0.2])), ValueError, "TopParameters.lever"),
     "heavy top inertia of shape (4,)": (lambda: TopParameters(jnp.ones(4), TOP_ARGS.lever), ValueError, "TopParameters.inertia"),
+    "free body inertia of shape (2,)": (
+        lambda: _integrate(field=FREE_BODY, args=jnp.array([1.0, 2.0])),
+        ValueError,
+        r"FreeRigidBody: the inertia is principal moments \(3,\) or a tensor",
+    ),
+    "free body inertia of shape (2, 3)": (
+        lambda: _integrate(field=FREE_BODY, args=jnp.ones((2, 3))),
+        ValueError,
+        "FreeRigidBody: the inertia is principal moments",
+    ),
+    "heavy top given an array as args": (
+        lambda: _integrate(field=TOP, method=TOP.method(pk.stormer_verlet), args=TOP_ARGS.inertia),
+        TypeError,
+        r"HeavyTop takes its parameters as args=TopParameters",
+    ),
+    "heavy top given one moment": (
+        lambda: _integrate(field=TOP, method=TOP.method(pk.stormer_verlet), args=TopParameters(1.0, TOP_ARGS.lever)),
+        ValueError,
+        "SphericalTop's",
+    ),
+    "diffeqsolve, heavy top given an array as args": (
+        lambda: _diffeqsolve(term=pk.PRKMKTerm(TOP), solver=pk.PRKMKSolver(TOP.method(pk.stormer_verlet)), args=TOP_ARGS.inertia),
+        TypeError,
+        "HeavyTop takes its parameters",
+    ),
     "forced body inertia of shape (2,)": (
         lambda: ForcedParameters(jnp.array([1.0, 2.0]), None),
         ValueError,
@@ -169,6 +196,36 @@ RUNTIME = {
         lambda i: ForcedParameters(i, None).inertia,
         jnp.array([-1.0, 0.8, 0.4]),
         "ForcedParameters.inertia: every principal moment",
+    ),
+    "free body, a negative moment": (
+        lambda i: _integrate(field=FREE_BODY, args=i),
+        jnp.array([1.0, -0.8, 0.4]),
+        "FreeRigidBody: every principal",
+    ),
+    "free body, a zero moment": (
+        lambda i: _integrate(field=FREE_BODY, args=i),
+        jnp.array([1.0, 0.8, 0.0]),
+        "moment of inertia must be > 0",
+    ),
+    "free body, a tensor not positive definite": (
+        lambda i: _integrate(field=FREE_BODY, args=i),
+        jnp.diag(jnp.array([1.0, -0.5, 0.4])),
+        "FreeRigidBody: the inertia tensor must be symmetric and positive definite",
+    ),
+    "free body, a tensor not symmetric": (
+        lambda i: _integrate(field=FREE_BODY, args=i),
+        jnp.array([[1.0, 0.1, 0.0], [0.0, 0.8, 0.0], [0.0, 0.0, 0.4]]),
+        "symmetric and positive definite",
+    ),
+    "diffeqsolve, free body, a negative moment": (
+        lambda i: _diffeqsolve(term=pk.PRKMKTerm(FREE_BODY), args=i),
+        jnp.array([-1.0, 0.8, 0.4]),
+        "FreeRigidBody: every principal",
+    ),
+    "symmetric body on SO(4), masses with Jᵢ + Jⱼ ≤ 0": (
+        lambda j: _integrate(SO4_STATE, field=SYMMETRIC_SO4, method=SYMMETRIC_SO4.method(pk.symplectic_euler), args=j),
+        jnp.array([0.9, 0.7, -0.8, 0.3]),
+        r"SymmetricRigidBody: every Jᵢ \+ Jⱼ",
     ),
     "diffeqsolve, y0 not orthogonal": (lambda y: _diffeqsolve(y), _with_base(NOT_ORTHOGONAL), "not orthogonal"),
     "diffeqsolve, y0 a reflection": (lambda y: _diffeqsolve(y), _with_base(REFLECTION), "det = −1"),
@@ -247,7 +304,7 @@ else:
 
 @pytest.mark.parametrize("on_error", ["raise", "nan"])
 def test_which_integrations_the_compilation_cache_keeps(on_error, tmp_path):
-    """README, Errors and limits: the run-time checks are host callbacks, so
+    """docs/concepts/errors.md: the run-time checks are host callbacks, so
     JAX's persistent cache does not store the integrations; with
     EQX_ON_ERROR=nan they have none and are stored, and a failed stage or a
     scaled rotation as y0 gives NaN states and a failed result."""

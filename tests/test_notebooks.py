@@ -17,15 +17,9 @@ EXPECTED = [
     "05_choosing_a_method",
     "06_fit_control_torque",
 ]
-# The notebooks whose kernels keep LLVM's optimisation passes, which the
-# other tests turn off (conftest.py): their batches run long enough for the
-# passes to pay for themselves. Each notebook with this run's flags against
-# with the passes, two runs each, alternating (s):
-#   01: 7.8, 7.1 / 9.5, 8.4       02: 35.0, 31.4 / 38.6, 35.1
-#   03: 18.1, 16.4 / 9.6, 8.5     04: 22.6, 21.4 / 22.5, 19.6
-#   05: 16.6, 16.6 / 21.9, 18.6   06: 11.6, 11.5 / 14.0, 12.4
-# so the six took 94.7 s and 103.1 s with this choice against 102.6 s and
-# 116.1 s all with the passes (and 104.4 s and 111.7 s all without).
+# The notebooks whose kernels keep LLVM's optimisation passes (off in the
+# other tests, conftest.py): their batches run long enough for the passes to
+# pay for themselves.
 KEEP_LLVM_PASSES = {"03_batch_tumbling", "04_where_methods_fail"}
 
 

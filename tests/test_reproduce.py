@@ -226,8 +226,8 @@ RECORD_FIELDS = {
 }
 
 
-# The README's §5 table: its row labels and the record fields of its columns.
-README_ROWS = {
+# The §5 table of docs/reproduction.md: its row labels and the record fields of its columns.
+TABLE_ROWS = {
     "symmetric, SE, exp (Fig 5.1)": "sym_SE_exp",
     "symmetric, SE, Cayley (Fig 5.1)": "sym_SE_cayley",
     "symmetric, SE, exp": "sym_SE_exp_T1000",
@@ -242,7 +242,7 @@ README_ROWS = {
     "SO(4)², SE, exp": "sym_so4_SE_exp",
     "SO(4)², SV, exp": "sym_so4_SV_exp",
 }
-README_COLUMNS = (
+TABLE_COLUMNS = (
     "max_abs_energy_error",
     "max_body_momentum_norm_drift",
     "max_spatial_momentum_drift",
@@ -252,19 +252,19 @@ README_COLUMNS = (
 ROUND_OFF = 1e-10
 
 
-def _assert_readme_table_is_this_run(records):
-    """Every entry of the README's §5 table above round-off is this run's
+def _assert_documented_table_is_this_run(records):
+    """Every entry of the §5 table of docs/reproduction.md above round-off is this run's
     value to its two printed digits; every entry below `ROUND_OFF` (which
     differs between machines in its digits) is still below it here."""
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    page = (Path(__file__).resolve().parents[1] / "docs" / "reproduction.md").read_text()
     by_name = {r["run"]: r for r in records}
-    table = [[cell.strip() for cell in line.strip().strip("|").split("|")] for line in readme.splitlines() if line.startswith("| ")]
-    rows = [row for row in table if row[0] in README_ROWS]
-    assert sorted(row[0] for row in rows) == sorted(README_ROWS)
+    table = [[cell.strip() for cell in line.strip().strip("|").split("|")] for line in page.splitlines() if line.startswith("| ")]
+    rows = [row for row in table if row[0] in TABLE_ROWS]
+    assert sorted(row[0] for row in rows) == sorted(TABLE_ROWS)
     for label, t_end, *cells in rows:
-        record = by_name[README_ROWS[label]]
+        record = by_name[TABLE_ROWS[label]]
         assert float(t_end) == record["T"], label
-        for field, cell in zip(README_COLUMNS, cells, strict=True):
+        for field, cell in zip(TABLE_COLUMNS, cells, strict=True):
             value, printed = record[field], cell
             if printed == "—":
                 assert value is None, (label, field)
@@ -291,7 +291,7 @@ def test_reproduce_command(tmp_path, capsys):
         assert (record["symplecticity_defect"] is None) == (record["n"] != 3)
     data = np.load(tmp_path / "trajectories.npz")
     assert {"sym_SE_exp/Q", "sym_SE_exp/P", "sym_SE_exp/t", "unreduced_SV_cayley/g", "unreduced_SV_cayley/Pi"} <= set(data.files)
-    _assert_readme_table_is_this_run(meta["runs"])
+    _assert_documented_table_is_this_run(meta["runs"])
     out = capsys.readouterr().out
     assert "max|ΔH|" in out
     # Progress: one line per finished run, as it finishes.

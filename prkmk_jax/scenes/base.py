@@ -82,6 +82,45 @@ def checked_moments(owner: str, moments, allow_scalar: bool = False) -> Array:
     )
 
 
+def checked_inertia_tensor(owner: str, tensor) -> Array:
+    """A body-frame inertia tensor (3, 3): symmetric and positive definite,
+    checked where the data is known (`eqx.error_if`), as `checked_moments`."""
+    tensor = jnp.asarray(tensor)
+    if not jnp.issubdtype(tensor.dtype, jnp.floating):
+        tensor = tensor.astype(float)
+    if tensor.shape != (3, 3):
+        raise ValueError(f"{owner}: an inertia tensor must have shape (3, 3), got {tensor.shape}.")
+    scale = jnp.max(jnp.abs(tensor))
+    symmetric = jnp.max(jnp.abs(tensor - tensor.T)) <= 1e3 * jnp.finfo(tensor.dtype).eps * scale
+    # eigvalsh reads one triangle; the symmetry test above covers the other.
+    positive = jnp.min(jnp.linalg.eigvalsh(tensor)) > 0
+    return eqx.error_if(tensor, ~(symmetric & positive), f"{owner}: the inertia tensor must be symmetric and positive definite.")
+
+
+def checked_pair_masses(owner: str, masses) -> Array:
+    """The masses J (…, n) of the symmetric body on SO(n) (M = JΩ + ΩJ): the
+    inertia Ω ↦ JΩ + ΩJ is positive definite where every Jᵢ + Jⱼ (i ≠ j) is
+    > 0, checked where the data is known (`eqx.error_if`)."""
+    masses = jnp.asarray(masses)
+    if not jnp.issubdtype(masses.dtype, jnp.floating):
+        masses = masses.astype(float)
+    if masses.ndim < 1 or masses.shape[-1] < 2:
+        raise ValueError(f"{owner}: the masses J must have shape (…, n) with n ≥ 2, got {masses.shape}.")
+    n = masses.shape[-1]
+    sums = masses[..., :, None] + masses[..., None, :]
+    off_diagonal = ~jnp.eye(n, dtype=bool)
+    message = f"{owner}: every Jᵢ + Jⱼ (i ≠ j) must be > 0 (a positive-definite inertia)."
+    return eqx.error_if(masses, ~jnp.all(jnp.where(off_diagonal, sums > 0, True)), message)
+
+
+def checked_parameters(owner: str, args, kind: type):
+    """`args` if it is a `kind` (the scene's parameter Module), else a
+    `TypeError` naming `owner`."""
+    if not isinstance(args, kind):
+        raise TypeError(f"{owner} takes its parameters as args={kind.__name__}(...), got {type(args).__name__}.")
+    return args
+
+
 def checked_vector(owner: str, vector) -> Array:
     """`vector` as a body-frame 3-vector (shape (…, 3)), or a `ValueError`
     naming `owner`."""

@@ -20,7 +20,7 @@ from .. import diagnostics, exact_flows
 from ..bundles import AbstractBundle, BundleElement
 from ..groups import hat
 from ..method import Time
-from .base import AbstractBodyOnTStarSO3, checked_moments, rotation_matrix
+from .base import AbstractBodyOnTStarSO3, checked_moments, checked_parameters, rotation_matrix
 
 
 class HarmonicTorque(eqx.Module):
@@ -71,7 +71,13 @@ class ForcedRigidBody(AbstractBodyOnTStarSO3, exact_flows.AbstractSplitScene):
         if not callable(self.torque_law):
             raise TypeError(f"ForcedRigidBody's torque_law must be a function (t, params) -> body torque, got {self.torque_law!r}.")
 
+    def checked_args(self, args: ForcedParameters) -> ForcedParameters:
+        """`ForcedParameters` with principal moments (…, 3), each > 0."""
+        args = checked_parameters("ForcedRigidBody", args, ForcedParameters)
+        return ForcedParameters(args.inertia, args.torque)
+
     def __call__(self, t, y: BundleElement, args: ForcedParameters):
+        checked_parameters("ForcedRigidBody", args, ForcedParameters)  # trace time: a clear error, whoever calls the field first
         # The torque is the same for every trajectory of a batch in the state.
         omega = y.fiber / args.inertia
         return omega, jnp.broadcast_to(self.torque_law(t, args.torque), omega.shape)

@@ -29,7 +29,7 @@ from jaxtyping import Array, Float
 from .. import diagnostics, exact_flows
 from ..bundles import AbstractBundle, BundleElement, Cotangent, DirectProduct
 from ..groups import SO3, hat
-from .base import AbstractScene, checked_moments, checked_vector, rotation_and_vector_embedding, rotation_matrix
+from .base import AbstractScene, checked_moments, checked_parameters, checked_vector, rotation_and_vector_embedding, rotation_matrix
 
 
 class TopParameters(eqx.Module):
@@ -94,7 +94,16 @@ class HeavyTop(AbstractScene, exact_flows.AbstractSplitScene):
         if not isinstance(self.bundle, (Cotangent, DirectProduct)) or self.bundle.base is not SO3:
             raise TypeError(f"HeavyTop lives on Cotangent(SO3) or DirectProduct(SO3), got {self.bundle!r}.")
 
+    def checked_args(self, args: TopParameters) -> TopParameters:
+        """`TopParameters` with principal moments (…, 3), each > 0, and a
+        lever (…, 3)."""
+        args = checked_parameters("HeavyTop", args, TopParameters)
+        if jnp.shape(args.inertia) == ():
+            raise ValueError("HeavyTop takes the principal moments (3,); one moment α (isotropic inertia) is SphericalTop's.")
+        return TopParameters(args.inertia, args.lever)
+
     def __call__(self, t, y: BundleElement, args: TopParameters):
+        checked_parameters("HeavyTop", args, TopParameters)  # trace time: a clear error, whoever calls the field first
         omega = y.fiber / args.inertia
         torque = jnp.cross(_vertical(rotation_matrix(y.base)), args.lever)
         if isinstance(self.bundle, DirectProduct):
@@ -149,8 +158,13 @@ class SphericalTop(AbstractScene):
     bundle: ClassVar[AbstractBundle] = DirectProduct(SO3)  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox lets a ClassVar implement an AbstractVar
     form: ClassVar[Literal["space", "body"]] = "body"  # pyright: ignore[reportIncompatibleVariableOverride]  # as above
 
+    def checked_args(self, args: TopParameters) -> TopParameters:
+        """`TopParameters` with one moment α > 0 and a lever (…, 3)."""
+        _check_isotropic(checked_parameters("SphericalTop", args, TopParameters))
+        return TopParameters(args.inertia, args.lever)
+
     def __call__(self, t, y: BundleElement, args: TopParameters):
-        _check_isotropic(args)
+        _check_isotropic(checked_parameters("SphericalTop", args, TopParameters))
         return y.fiber / args.inertia, jnp.cross(_vertical(rotation_matrix(y.base)), args.lever)
 
     def invariants(self, y: BundleElement, args: TopParameters) -> dict[str, Array]:

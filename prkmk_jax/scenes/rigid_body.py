@@ -25,7 +25,14 @@ from jaxtyping import Array, Float
 from .. import diagnostics, exact_flows
 from ..bundles import AbstractBundle, AbstractSemidirect, BundleElement, Cartesian, Cotangent, DirectProduct
 from ..groups import SO3, SOn, hat, vee
-from .base import AbstractScene, rotation_and_vector_embedding, rotation_matrix
+from .base import (
+    AbstractScene,
+    checked_inertia_tensor,
+    checked_moments,
+    checked_pair_masses,
+    rotation_and_vector_embedding,
+    rotation_matrix,
+)
 
 PAPER_INERTIA = np.array([7 / 8, 5 / 8, 1 / 4])
 """Eq. (5.2), acting on the vector form of M."""
@@ -236,6 +243,16 @@ class FreeRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
         if self.form != "body":
             raise ValueError("FreeRigidBody is written in body form.")
 
+    def checked_args(self, inertia):
+        """The inertia: principal moments (3,), each > 0, or a symmetric
+        positive-definite tensor (3, 3)."""
+        shape = jnp.shape(inertia)
+        if shape == (3, 3):
+            return checked_inertia_tensor("FreeRigidBody", inertia)
+        if shape != (3,):
+            raise ValueError(f"FreeRigidBody: the inertia is principal moments (3,) or a tensor (3, 3), got shape {shape}.")
+        return checked_moments("FreeRigidBody", inertia)
+
     def __call__(self, t, y: BundleElement, inertia):
         omega = _body_rate(y.fiber, inertia)
         if isinstance(self.bundle, DirectProduct):
@@ -290,6 +307,13 @@ class SymmetricRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
             raise TypeError(f"SymmetricRigidBody lives on Cartesian(SO3) or Cartesian(SOn), got {self.bundle!r}.")
         if self.form != "body":
             raise ValueError("SymmetricRigidBody is written in body form.")
+
+    def checked_args(self, inertia):
+        """On SO(3) the principal moments (…, 3), each > 0; on SO(n) the
+        masses J (…, n), every Jᵢ + Jⱼ > 0."""
+        if self.bundle.base is SO3:
+            return checked_moments("SymmetricRigidBody", inertia)
+        return checked_pair_masses("SymmetricRigidBody", inertia)
 
     def __call__(self, t, y: BundleElement, inertia):
         return symmetric_rigid_body(t, y, inertia)
