@@ -110,9 +110,10 @@ def invariants(q, pi, inertia=INERTIA):
 MAX_STEPS = 1_000_000
 
 
-def prkmk_solver(tableau, coordinates="exp", adaptive=False, root_finder=None):
+def prkmk_solver(tableau, coordinates="exp", adaptive=False, root_finder=None, **options):
+    """`PRKMKSolver` of the scene's method of `tableau`; `options` go to `PRKMK`."""
     coords = pk.Exp() if coordinates == "exp" else pk.Cayley()
-    return pk.PRKMKSolver(SCENE.method(tableau, coords, root_finder=root_finder), adaptive=adaptive)
+    return pk.PRKMKSolver(SCENE.method(tableau, coords, root_finder=root_finder, **options), adaptive=adaptive)
 
 
 def integrate_final(method, steps, h):

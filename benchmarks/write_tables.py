@@ -1,7 +1,9 @@
 """The tables made from the benchmarks' results files, written into the
 documents that quote them: the accuracy-per-second tables from
-`benchmarks/splitting.py`, and `benchmarks/README.md`'s tables of
-`stage_layout.py` and of `against_revision.py` (its heavy-top run).
+`benchmarks/splitting.py` (in `benchmarks/README.md`, the docs and notebook
+05), and one or more tables of every other script's results in
+`benchmarks/README.md`, each opening with the machine and jax version it
+was measured on.
 
 Each document holds its table between the lines
 
@@ -40,9 +42,14 @@ Tables:
   fastest run that reached the target; the hand-written kernel left out,
   it is not something a user calls), the runner-up, and the fastest
   symplectic run.
+- `work_precision`, `long_time`, `heavy_top`, `throughput`, `stability`,
+  `floor`, `against_scan`, `explicit_stages`, `root_finders`,
+  `against_revision`, `xla_codegen`: the script of the same name's results
+  file, as its function's docstring says.
 """
 
 import argparse
+import functools
 import json
 import re
 import sys
@@ -53,7 +60,24 @@ ROOT = Path(__file__).resolve().parents[1]
 SOURCES = ("splitting.json", "splitting_16384.json", "splitting_gpu_float64.json", "splitting_gpu_float32.json")
 """The results files, in the order their rows are listed (those present)."""
 DOCUMENTS = {
-    "benchmarks/README.md": ("accuracy", "stage_layout", "revision", "round_off", "round_off_cost"),
+    "benchmarks/README.md": (
+        "accuracy",
+        "stage_layout",
+        "revision",
+        "work_precision",
+        "long_time",
+        "round_off",
+        "round_off_cost",
+        "stability",
+        "throughput",
+        "against_scan",
+        "floor",
+        "heavy_top",
+        "explicit_stages",
+        "root_finders",
+        "against_revision",
+        "xla_codegen",
+    ),
     "docs/concepts/choosing.md": ("decision", "summary"),
 }
 FLOOR = "floor order 8 (hand-written)"
@@ -222,14 +246,17 @@ def revision_table(_entries=None, root: Path | None = None, name: str = "against
     data = results_file(name, root)
     device = device_name(data["machine"])
     lines = [
-        f"| scene | tableau | coordinates | path | batch | device | now, ns | at {data['sha']}, ns | now / before |",
-        "|---|---|---|---|---|---|---|---|---|",
+        _measured_on(data),
+        "",
+        f"| scene | tableau | coordinates | path | dtype | batch | device | now, ns | at {data['sha']}, ns | now / before "
+        "| largest difference |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in data["rows"]:
         ns = r["ns_per_traj_step"]
         lines.append(
-            f"| {r.get('scene', 'free body')} | {r['tableau']} | {r['coordinates']} | {r['path']} | {r['batch']} | {device} "
-            f"| {ns['now']:.0f} | {ns['before']:.0f} | {r['now_over_before']:.2f} |"
+            f"| {r.get('scene', 'free body')} | {r['tableau']} | {r['coordinates']} | {r['path']} | {r['dtype']} | {r['batch']} "
+            f"| {device} | {ns['now']:.0f} | {ns['before']:.0f} | {r['now_over_before']:.2f} | {r['max_abs_difference']:.1e} |"
         )
     return "\n".join(lines)
 
@@ -274,8 +301,283 @@ def round_off_cost_table(_entries=None, root: Path | None = None) -> str:
     return "\n".join(lines)
 
 
-OTHER_SOURCES = ("stage_layout.json", "against_revision_heavy_top.json", "round_off.json")
-"""The results files of the `stage_layout`, `revision` and `round_off` tables."""
+def _table(headers: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def _number(value, spec: str) -> str:
+    """`value` formatted, or "–" where there is none (None, NaN)."""
+    if value is None or (isinstance(value, float) and value != value):
+        return "–"
+    return format(value, spec)
+
+
+def _measured_on(data: dict) -> str:
+    machine = data["machine"]
+    if isinstance(machine, str):  # against_scan.json keeps the platform string and the jax version apart
+        return f"Measured on {data['devices'][0].split(':')[0].upper()}, jax {data['jax']}."
+    return f"Measured on {device_name(machine)}, jax {machine['jax']}."
+
+
+def work_precision_table(_entries=None, root: Path | None = None) -> str:
+    """`work_precision.py`: for each method, the fastest run that reached each
+    target error, one trajectory and a batch; methods ordered by the first
+    column."""
+    data = results_file("work_precision.json", root)
+    summary = data["summary"]
+    keys = list(summary["fastest_at_target"])
+    methods = sorted(
+        {m for runs in summary["fastest_at_target"].values() for m in runs},
+        key=lambda m: summary["fastest_at_target"][keys[0]].get(m, {}).get("wall_s", float("inf")),
+    )
+    rows = []
+    for method in methods:
+        cells = []
+        for key in keys:
+            run = summary["fastest_at_target"][key].get(method)
+            cells.append("–" if run is None else f"{run['wall_s'] * 1e3:.2f} ({run['steps']})")
+        rows.append([method, *cells])
+    headers = ["method", *(f"{key.replace('single', 'one trajectory').replace('batch', 'batch of 1024')}: ms (steps)" for key in keys)]
+    return _measured_on(summary) + "\n\n" + _table(headers, rows)
+
+
+def long_time_table(_entries=None, root: Path | None = None) -> str:
+    """`long_time.py`: the invariants' largest drifts over T = 1000 and the
+    time each run took."""
+    data = results_file("long_time.json", root)
+    rows = [
+        [
+            r["method"],
+            f"{r['kind']} = {r['parameter']:g}",
+            f"{r['wall_s']:.3f}",
+            _number(r["energy"], ".1e"),
+            _number(r["momentum_norm"], ".1e"),
+            _number(r["spatial_momentum"], ".1e"),
+            _number(r["orthogonality"], ".1e"),
+        ]
+        for r in data["rows"]
+    ]
+    headers = ["method", "setting", "s", "energy", "\\|Π\\|", "QΠ", "QᵀQ − I"]
+    return _measured_on(data) + f" T = {data['t_end']:g}.\n\n" + _table(headers, rows)
+
+
+def heavy_top_table(_entries=None, root: Path | None = None) -> str:
+    """`heavy_top.py`: the invariants over a long run, and the time each
+    method takes to reach an error at T = 10."""
+    data = results_file("heavy_top.json", root)
+    rows = [
+        [
+            r["method"],
+            f"{r['parameter']:g}",
+            f"{r['wall_s']:.3f}",
+            _number(r["energy"], ".1e"),
+            _number(r["vertical_momentum"], ".1e"),
+            _number(r["orthogonality"], ".1e"),
+        ]
+        for r in data["long_time"]
+    ]
+    long_time = _table(["method", "h or rtol", "s", "energy", "Γ·Π", "QᵀQ − I"], rows)
+    targets = (1e-4, 1e-6, 1e-8)
+    methods = dict.fromkeys(r["method"] for r in data["work_precision"])
+    rows = []
+    for method in methods:
+        runs = [r for r in data["work_precision"] if r["method"] == method]
+        cells = []
+        for target in targets:
+            reached = [r for r in runs if r["error"] <= target]
+            best = min(reached, key=lambda r: r["wall_s"]) if reached else None
+            cells.append("–" if best is None else f"{best['wall_s'] * 1e3:.2f} ({best['parameter']:g})")
+        rows.append([method, *cells])
+    work = _table(["method", *(f"ms to {t:.0e} (steps or rtol)" for t in targets)], rows)
+    return _measured_on(data) + "\n\n" + long_time + "\n\n" + work
+
+
+def throughput_table(_entries=None, root: Path | None = None) -> str:
+    """`throughput.py`: trajectory-steps per second against the batch, compile
+    time against the number of stages, and the cost of a gradient."""
+    data = results_file("throughput.json", root)
+    rows = [
+        [
+            str(r["batch"]),
+            r["method"],
+            f"{r['traj_steps_per_s']:.3g}",
+            _number(r["iterations_per_step"], ".1f"),
+            _number(r["over_tsit5"], ".2f"),
+            f"{r['compile_s']:.2f}",
+        ]
+        for r in data["throughput"]
+    ]
+    rates = _table(["batch", "method", "trajectory-steps/s", "iterations a step", "time / Tsit5", "compile, s"], rows)
+    rows = [[r["tableau"], str(r["stages"]), r["path"], f"{r['compile_s']:.2f}"] for r in data["compile_vs_stages"]]
+    compile_times = _table(["tableau", "stages", "path", "compile, s"], rows)
+    rows = [
+        [
+            r["path"],
+            str(r["batch"]),
+            str(r["steps"]),
+            f"{r['forward_s'] * 1e3:.1f}",
+            f"{r['forward_backward_s'] * 1e3:.1f}",
+            f"{r['ratio']:.2f}",
+            f"{r['forward_compile_s']:.2f}",
+            f"{r['gradient_compile_s']:.2f}",
+        ]
+        for r in data["gradient"]
+    ]
+    headers = ["path", "batch", "steps", "forward, ms", "value and gradient, ms", "ratio", "compile forward, s", "compile gradient, s"]
+    gradient = _table(headers, rows)
+    return _measured_on(data) + "\n\n" + rates + "\n\n" + compile_times + "\n\n" + gradient
+
+
+def stability_table(_entries=None, root: Path | None = None) -> str:
+    """`stability.py`: the largest h·|Ω₀| each method stays stable to, and
+    the first failure beyond it."""
+    data = results_file("stability.json", root)
+    rows = []
+    for r in data["thresholds"]:
+        bounded_throughout = _number(r["first_failure"], "g") == "–"
+        threshold = f"≥ {r['threshold']:.3g} (the grid's top)" if bounded_throughout else f"{r['threshold']:.3g}"
+        rows.append([r["scene"], r["method"], threshold, _number(r["first_failure"], ".3g"), r["reason"]])
+    headers = ["scene", "method", "stable to h·\\|Ω₀\\|", "first failure", "why"]
+    return _measured_on(data) + f" T = {data['t_end']:g}.\n\n" + _table(headers, rows)
+
+
+def floor_table(_entries=None, root: Path | None = None) -> str:
+    """`floor.py`: ns per trajectory-step of the hand-fused kernel (the
+    floor), `integrate` and `diffeqsolve` vmapped and with the batch in the
+    state, and Tsit5 on the embedding (Störmer–Verlet rows)."""
+    data = results_file("floor.json", root)
+    rows = []
+    for r in data["rows"]:
+        ns, over, it = r["ns_per_traj_step"], r["over_floor"], r["iterations_per_step"]
+        rows.append(
+            [
+                r["method"],
+                r["dtype"],
+                str(r["batch"]),
+                f"{ns['floor']:.0f}",
+                f"{ns['integrate']:.0f} ({over['integrate']:.2f})",
+                f"{ns['diffeqsolve']:.0f} ({over['diffeqsolve']:.2f})",
+                "–" if "integrate_state" not in ns else f"{ns['integrate_state']:.0f} ({over['integrate_state']:.2f})",
+                "–" if "diffeqsolve_state" not in ns else f"{ns['diffeqsolve_state']:.0f} ({over['diffeqsolve_state']:.2f})",
+                "–" if "tsit5" not in ns else f"{ns['tsit5']:.0f} ({over['tsit5']:.2f})",
+                f"{it['floor']:.1f} / {it['integrate']:.1f}",
+            ]
+        )
+    headers = ["method", "dtype", "batch", "floor, ns", "integrate, ns (/ floor)", "diffeqsolve", "integrate, batch in the state"]
+    headers += ["diffeqsolve, batch in the state", "Tsit5", "iterations a step, floor / integrate"]
+    return _measured_on(data) + "\n\n" + _table(headers, rows)
+
+
+def against_scan_table(_entries=None, root: Path | None = None) -> str:
+    """`against_scan.py`: ns per step of `diffeqsolve`, `lax.scan` and a bare
+    `while_loop` over the same step."""
+    data = results_file("against_scan.json", root)
+    rows = [
+        [
+            str(r["batch"]),
+            f"{r['scan_ns_per_step']:.0f}",
+            f"{r['diffrax_ns_per_step']:.0f}",
+            f"{r['while_ns_per_step']:.0f}",
+            f"{r['diffrax_over_scan']:.2f}",
+            f"{r['while_over_scan']:.2f}",
+            f"{r['scan_compile_s']:.2f}",
+            f"{r['diffrax_compile_s']:.2f}",
+        ]
+        for r in data["rows"]
+    ]
+    headers = ["batch", "scan, ns", "diffeqsolve, ns", "while_loop, ns", "diffeqsolve / scan", "while / scan", "compile scan, s"]
+    headers += ["compile diffeqsolve, s"]
+    return _measured_on(data) + "\n\n" + _table(headers, rows)
+
+
+def explicit_stages_table(_entries=None, root: Path | None = None) -> str:
+    """`explicit_stages.py`: the stage plan read from the field against the
+    tableau's own, per step."""
+    data = results_file("explicit_stages.json", root)
+    rows = []
+    for r in data["rows"]:
+        ns, it = r["ns_per_traj_step"], r["iterations_per_step"]
+        rows.append(
+            [
+                r["scene"],
+                r["tableau"],
+                r["dtype"],
+                str(r["batch"]),
+                f"`{r['plan']}`",
+                f"{ns['traced']:.0f}",
+                f"{ns['tableau']:.0f}",
+                f"{r['traced_over_tableau']:.2f}",
+                f"{it['traced']:.1f}",
+                f"{it['tableau']:.1f}",
+            ]
+        )
+    headers = ["scene", "tableau", "dtype", "batch", "plan", "traced, ns", "tableau, ns", "traced / tableau", "iterations traced"]
+    headers += ["iterations tableau"]
+    return _measured_on(data) + f" h = {data['h']:g}.\n\n" + _table(headers, rows)
+
+
+def root_finders_table(_entries=None, root: Path | None = None) -> str:
+    """`root_finders.py`: fixed-point iteration against Newton's method on the
+    implicit stages."""
+    data = results_file("root_finders.json", root)
+    rows = []
+    for r in data["rows"]:
+        ns, it = r["ns_per_traj_step"], r["iterations_per_step"]
+        rows.append(
+            [
+                r["tableau"],
+                str(r["batch"]),
+                f"{ns['fixed_point']:.0f}",
+                f"{ns['newton']:.0f}",
+                f"{r['newton_over_fixed_point']:.2f}",
+                f"{it['fixed_point']:.1f}",
+                f"{it['newton']:.1f}",
+            ]
+        )
+    headers = ["tableau", "batch", "fixed point, ns", "Newton, ns", "Newton / fixed point", "iterations fixed point", "iterations Newton"]
+    return _measured_on(data) + "\n\n" + _table(headers, rows)
+
+
+def xla_codegen_table(_entries=None, root: Path | None = None) -> str:
+    """`xla_codegen.py`: compile and run time with XLA's older CPU code
+    generator over its default."""
+    data = results_file("xla_codegen.json", root)
+    rows = [
+        [
+            r["name"],
+            str(r["batch"]),
+            r["dtype"],
+            f"{r['compile_s']['default']:.2f}",
+            f"{r['compile_s_ratio']:.2f}",
+            f"{r['run_s']['default'] * 1e3:.2f}",
+            f"{r['run_s_ratio']:.2f}",
+            f"{r['relative_gap']:.0e}",
+        ]
+        for r in data["rows"]
+    ]
+    headers = ["program", "batch", "dtype", "compile default, s", "compile ratio", "run default, ms", "run ratio", "largest relative gap"]
+    return _measured_on(data) + f" Ratios: `{data['flag']}` over XLA's default.\n\n" + _table(headers, rows)
+
+
+OTHER_SOURCES = (
+    "stage_layout.json",
+    "against_revision_heavy_top.json",
+    "against_revision.json",
+    "round_off.json",
+    "work_precision.json",
+    "long_time.json",
+    "heavy_top.json",
+    "throughput.json",
+    "stability.json",
+    "floor.json",
+    "against_scan.json",
+    "explicit_stages.json",
+    "root_finders.json",
+    "xla_codegen.json",
+)
+"""The results files of the tables that read their own file."""
 ENTRY_TABLES = ("accuracy", "decision", "summary")
 """The tables made from `splitting.py`'s results; the others read their own file."""
 TABLES = {
@@ -286,6 +588,17 @@ TABLES = {
     "revision": revision_table,
     "round_off": round_off_table,
     "round_off_cost": round_off_cost_table,
+    "work_precision": work_precision_table,
+    "long_time": long_time_table,
+    "heavy_top": heavy_top_table,
+    "throughput": throughput_table,
+    "stability": stability_table,
+    "floor": floor_table,
+    "against_scan": against_scan_table,
+    "explicit_stages": explicit_stages_table,
+    "root_finders": root_finders_table,
+    "against_revision": functools.partial(revision_table, name="against_revision.json"),
+    "xla_codegen": xla_codegen_table,
 }
 
 
