@@ -66,7 +66,7 @@ def main(argv=None):
     def while_run(pi0):
         def body(carry):
             n, y = carry
-            return n + 1, method.step(field, n * h, y, h, inertia)[0]
+            return n + 1, method.step(field, n * h, y, h, inertia).y
 
         return jax.lax.while_loop(lambda carry: carry[0] < steps, body, (0, initial(pi0)))[1]
 

@@ -41,18 +41,6 @@ from .bundles import (
 from .bundles import (
     Semidirect as Semidirect,
 )
-from .composed import (
-    Adjoint as Adjoint,
-)
-from .composed import (
-    Composition as Composition,
-)
-from .composed import (
-    Symmetrized as Symmetrized,
-)
-from .composed import (
-    symmetry_defect as symmetry_defect,
-)
 from .compositions import (
     CompositionCoefficients as CompositionCoefficients,
 )
@@ -98,14 +86,27 @@ from .integrate import (
     resume as resume,
 )
 from .interpolation import OnGroupInterpolation as OnGroupInterpolation
+from .made_of_steps import (
+    Adjoint as Adjoint,
+)
+from .made_of_steps import (
+    Composition as Composition,
+)
+from .made_of_steps import (
+    Symmetrized as Symmetrized,
+)
+from .made_of_steps import (
+    symmetry_defect as symmetry_defect,
+)
+from .method import RESULTS as RESULTS
 from .method import AbstractMethod as AbstractMethod
+from .method import Step as Step
 from .series import dexp_inv_series as dexp_inv_series
 from .series import dexp_series as dexp_series
 from .solver import PRKMKSolver as PRKMKSolver
 from .solver import PRKMKTerm as PRKMKTerm
 from .splitting import Splitting as Splitting
 from .step import PRKMK as PRKMK
-from .step import RESULTS as RESULTS
 from .tableaus import (
     PartitionedTableau as PartitionedTableau,
 )

@@ -24,9 +24,9 @@ class Continuation(eqx.Module):
     """The step size."""
     steps_done: Int[Array, ""]
     """Steps taken since `t0` (int32)."""
-    guesses: PyTree
-    """The implicit stages' starting guesses for the next step (the carried
-    stage slopes of `AbstractMethod.step_with_guesses`)."""
+    carried: PyTree
+    """What the next step starts from (`Step.carried`: the field at the last
+    step's start and its stage slopes, the next step's starting guesses)."""
 
 
 class Trajectory(eqx.Module):
@@ -101,14 +101,14 @@ def integrate(
     them (`Composition`, `Symmetrized`, `Adjoint`). Implicit stages start
     from the previous step's stage slopes, moved by the change of the field
     at the step's start (an O(h²) guess; the field at yₙ alone is O(h);
-    `PRKMK.step_with_guesses`); they converge to the same tolerance either
+    `PRKMK.carried_step`); they converge to the same tolerance either
     way. To continue the run later, pass `Trajectory.continuation` to
     `resume`.
     """
     _check_method(method)
     y0, t0, dt, args = _checked_start(method, vector_field, y0, t0, dt, args)
-    guesses = method.initial_guesses(vector_field, t0, y0, args)
-    start = Continuation(y0, t0, dt, jnp.array(0, jnp.int32), guesses)
+    carried = method.initial_carried(vector_field, t0, y0, args)
+    start = Continuation(y0, t0, dt, jnp.array(0, jnp.int32), carried)
     return _run(method, vector_field, start, num_steps, args, save_every, throw)
 
 
@@ -145,9 +145,9 @@ def resume(
         )
     c = continuation
     y, t, dt, args = _checked_start(method, vector_field, c.y, c.t0 + c.steps_done * c.dt, c.dt, args)
-    expected = jax.tree.structure(eqx.filter_eval_shape(method.initial_guesses, vector_field, t, y, args))
-    if jax.tree.structure(continuation.guesses) != expected:
-        raise TypeError("the continuation comes from another method (its carried guesses have another structure).")
+    expected = jax.tree.structure(eqx.filter_eval_shape(method.initial_carried, vector_field, t, y, args))
+    if jax.tree.structure(continuation.carried) != expected:
+        raise TypeError("the continuation comes from another method (what it carries has another structure).")
     start = eqx.tree_at(lambda c: (c.y, c.dt), continuation, (y, dt))
     return _run(method, vector_field, start, num_steps, args, save_every, throw)
 
@@ -191,16 +191,16 @@ def _run(method, vector_field, start: Continuation, num_steps, args, save_every,
     t0, dt = start.t0, start.dt
 
     def one_step(carry, n):
-        y, result, total, worst, guesses = carry
-        y_next, _, step_result, iters, guesses = method.step_with_guesses(vector_field, t0 + n * dt, y, dt, args, guesses)
-        result = first_failure(result, step_result)
-        return (y_next, result, total + iters, jnp.maximum(worst, iters), guesses), None
+        y, result, total, worst, carried = carry
+        step = method.carried_step(vector_field, t0 + n * dt, y, dt, args, carried)
+        result = first_failure(result, step.result)
+        return (step.y, result, total + step.iterations, jnp.maximum(worst, step.iterations), step.carried), None
 
     # Under reverse mode a scanned step would store every intermediate of
     # every step (hundreds of per-trajectory scalars); rematerialised, it
     # stores the state and the implicit stages' solutions only, and the
-    # backward pass re-runs the explicit arithmetic (value_and_grad/forward
-    # 6.4 → 3.6 on the gradient benchmark).
+    # backward pass re-runs the explicit arithmetic (`throughput.py`
+    # measures the gradient's cost).
     saved = jax.checkpoint_policies.save_only_these_names(STAGE_SLOPES_NAME)
     step_fn = jax.checkpoint(one_step, prevent_cse=False, policy=saved)
 
@@ -209,13 +209,13 @@ def _run(method, vector_field, start: Continuation, num_steps, args, save_every,
         return carry, carry[0]
 
     zero = jnp.array(0, jnp.int32)
-    init = (start.y, RESULTS.successful, zero, zero, start.guesses)
+    init = (start.y, RESULTS.successful, zero, zero, start.carried)
     num_saves = num_steps // save_every
     save_steps = start.steps_done + save_every * jnp.arange(num_saves + 1, dtype=jnp.int32)
-    (y_last, result, total, worst, guesses), saved = jax.lax.scan(one_save, init, save_steps[:-1])
+    (y_last, result, total, worst, carried), saved = jax.lax.scan(one_save, init, save_steps[:-1])
     ys = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), start.y, saved)
     ts = t0 + save_steps * dt
     if throw:
         ys = result.error_if(ys, result != RESULTS.successful)
-    continuation = Continuation(y_last, t0, dt, save_steps[-1], guesses)
+    continuation = Continuation(y_last, t0, dt, save_steps[-1], carried)
     return Trajectory(ts, ys, result, {"num_iterations": total, "max_iterations_per_step": worst}, continuation)

@@ -5,7 +5,7 @@ a step that carries its implicit stages' starting guesses from one step to
 the next, the coordinate map its increments live in (for dense output), and
 the pieces shared by every method (the generator in the state's dtype, the
 vector-field check). `PRKMK` (Algorithm 4.2, `step.py`) is one; the methods
-made of other methods' steps (`composed.py`: adjoints, symmetrised methods,
+made of other methods' steps (`made_of_steps.py`: adjoints, symmetrised methods,
 compositions) are the others.
 """
 
@@ -73,13 +73,33 @@ def flag_nonfinite(result: RESULTS, y) -> RESULTS:
     return first_failure(result, RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite))  # pyright: ignore[reportArgumentType]  # an Enumeration member is typed as its Literal
 
 
+class Step(eqx.Module):
+    """One step of a method from (t, y) to t + dt (`AbstractMethod.step`)."""
+
+    y: BundleElement
+    """The state at t + dt."""
+    increment: AlgebraPair
+    """The step in the algebra: the U with `apply_increment(U, y_start) = y`
+    (dense output interpolates along it)."""
+    result: RESULTS
+    """`RESULTS.successful`, or the step's failure (an implicit stage that did
+    not converge, a non-finite state)."""
+    iterations: Iterations
+    """The implicit iterations the step took."""
+    carried: Any
+    """What the next step starts from: the field at this step's start and,
+    for implicit stages, this step's stage slopes, the next step's starting
+    guesses (`start_field` reads the field). Pass it to the next `step`."""
+
+
 class AbstractMethod(eqx.Module):
     """A one-step method on a bundle group, as the drivers use it.
 
-    A step is `step_with_guesses(vector_field, t, y, dt, args, carried)`:
-    `carried` is what the previous step handed on (`initial_guesses` before
-    the first), the implicit stages' starting guesses. Everything else is
-    built on it.
+    A step is `step(vector_field, t, y, dt, args, carried)`, which returns a
+    `Step`: the new state, the step's increment, its result and iterations,
+    and what it hands on to the next step (`Step.carried`; before the first
+    step, `initial_carried`). The drivers and the methods made of other
+    methods' steps use this one entry point.
     """
 
     bundle: eqx.AbstractVar[AbstractBundle]
@@ -105,17 +125,13 @@ class AbstractMethod(eqx.Module):
         problem)."""
 
     @abc.abstractmethod
-    def initial_guesses(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None) -> Any:
-        """What `step_with_guesses` carries, before the first step from (t, y)."""
+    def initial_carried(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None) -> Any:
+        """What a step from (t, y) starts from when no step came before it
+        (`Step.carried` of a step that ended at (t, y))."""
 
     @abc.abstractmethod
-    def step_with_guesses(
-        self, vector_field: VectorField, t: Time, y: BundleElement, dt: Time, args: PyTree, carried: Any
-    ) -> tuple[BundleElement, AlgebraPair, RESULTS, Iterations, Any]:
-        """One step from (t, y) to t + dt. Returns (y_next, increment, result,
-        iterations, carried for the next step): `increment` is the U with
-        `advance(U, y) = y_next`, `iterations` the implicit iterations
-        taken."""
+    def carried_step(self, vector_field: VectorField, t: Time, y: BundleElement, dt: Time, args: PyTree, carried: Any) -> Step:
+        """`step` with `carried` given: what each method implements."""
 
     @abc.abstractmethod
     def check_fits(self, vector_field: VectorField) -> None:
@@ -194,19 +210,11 @@ class AbstractMethod(eqx.Module):
                     f"but the algebra of {type(self.bundle).__name__}({self.bundle.base.__name__}) at this state has shape {want.shape}."
                 )
 
-    def step(
-        self, vector_field: VectorField, t: Time, y: BundleElement, dt: Time, args: PyTree = None
-    ) -> tuple[BundleElement, RESULTS, Iterations]:
-        """One step from (t, y) to t + dt, the implicit stages started from the
-        field at y. Returns (y_next, result, iterations)."""
-        y_next, _, result, iterations = self.step_with_increment(vector_field, t, y, dt, args)
-        return y_next, result, iterations
-
-    def step_with_increment(
-        self, vector_field: VectorField, t: Time, y: BundleElement, dt: Time, args: PyTree = None
-    ) -> tuple[BundleElement, AlgebraPair, RESULTS, Iterations]:
-        """As `step`, also returning the increment U of the step
-        (y_next = `advance(U, y)`)."""
-        carried = self.initial_guesses(vector_field, t, y, args)
-        y_next, increment, result, iterations, _ = self.step_with_guesses(vector_field, t, y, dt, args, carried)
-        return y_next, increment, result, iterations
+    def step(self, vector_field: VectorField, t: Time, y: BundleElement, dt: Time, args: PyTree = None, carried: Any = None) -> Step:
+        """One step from (t, y) to t + dt. `carried` is the previous step's
+        `Step.carried`, whose stage slopes start this step's implicit stages
+        (an O(h²) guess); None starts them from the field at y, as
+        `initial_carried` says. Both converge to the same stage solution."""
+        if carried is None:
+            carried = self.initial_carried(vector_field, t, y, args)
+        return self.carried_step(vector_field, t, y, dt, args, carried)

@@ -100,7 +100,7 @@ def _step_map(method, field, bundle, h, inertia):
 
     def step(g, pi):
         y = rb.from_attitude_and_momentum(bundle, g, pi)
-        y1 = method.step(field, 0.0, y, h, inertia)[0]
+        y1 = method.step(field, 0.0, y, h, inertia).y
         return rb.attitude_and_momentum(bundle, y1)
 
     return step

@@ -163,10 +163,10 @@ class PRKMKSolver(diffrax.AbstractSolver):
         # checked value (kept alive below, with y0's).
         checked_args = term.vector_field.checked_args(args) if isinstance(term.vector_field, AbstractFieldOnBundle) else None
         method.check_vector_field(field, field.direction * t0, y0, args)
-        # The solver state is what `PRKMK.step_with_guesses` carries: the
+        # The solver state is what a step carries (`Step.carried`): the
         # previous step's field at its start and its stage slopes, the implicit
         # stages' starting guesses (as in `integrate`).
-        carried = method.initial_guesses(field, field.direction * t0, y0, args)
+        carried = method.initial_carried(field, field.direction * t0, y0, args)
         # The field may not read every part of y0 (the free body ignores the
         # attitude), and XLA would then drop those checks as dead code. A zero
         # that depends on every checked entry keeps them alive (XLA does not fold
@@ -181,16 +181,18 @@ class PRKMKSolver(diffrax.AbstractSolver):
         direction = field.direction
         s0, s1 = direction * t0, direction * t1
         h = s1 - s0
-        y1, increment, result, _, carried = method.step_with_guesses(field, s0, y0, h, args, solver_state)
+        step = method.carried_step(field, s0, y0, h, args, solver_state)
+        y1, increment, result, carried = step.y, step.increment, step.result, step.carried
         x0 = method.start_field(carried)  # the field at (s0, y0)
         y_next, y_error = y1, None
         if self.adaptive:
             # Two half steps: carried on, and their difference from the full
             # step (entrywise in the embedding) is the error estimate.
-            y_half, _, result_a, _ = method.step_with_increment(field, s0, y0, h / 2, args)
-            y_next, _, result_b, _ = method.step_with_increment(field, s0 + h / 2, y_half, h / 2, args)
+            first = method.step(field, s0, y0, h / 2, args)
+            second = method.step(field, s0 + h / 2, first.y, h / 2, args)
+            y_next = second.y
             y_error = jax.tree.map(jnp.subtract, y_next, y1)
-            for r in (result_a, result_b):
+            for r in (first.result, second.result):
                 result = first_failure(result, r)
         # Dense output interpolates the full step y0 → y1; slopes are per unit
         # of diffrax's clock, in which the interpolation runs.

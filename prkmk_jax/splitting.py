@@ -37,7 +37,7 @@ from .bundles import BundleElement
 from .compositions import CompositionCoefficients
 from .coordinates import AbstractCoordinates, Cayley, Exp
 from .exact_flows import AbstractSplitScene, is_vectorised, renormalized_rotations
-from .method import LOW_PRECISION_EPS, RESULTS, AbstractMethod, Time, VectorField, flag_nonfinite
+from .method import LOW_PRECISION_EPS, RESULTS, AbstractMethod, Step, Time, VectorField, flag_nonfinite
 
 
 def sub_steps(num_parts: int, fractions: tuple[float, ...], merge: bool) -> tuple[tuple[int, float, float], ...]:
@@ -131,14 +131,14 @@ class Splitting(AbstractMethod):
                 f"{type(vector_field).__name__}; build the splitting from that scene (scene.splitting()) or use a PRKMK method."
             )
 
-    def initial_guesses(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None):
+    def initial_carried(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None):
         """The field at (t, y): all a step carries (for dense output)."""
         return self.generator(vector_field, t, y, args)
 
     def start_field(self, carried):
         return carried
 
-    def step_with_guesses(self, vector_field, t, y, dt, args, carried):
+    def carried_step(self, vector_field, t, y, dt, args, carried) -> Step:
         del carried  # explicit: nothing to start from
         dtype = jnp.result_type(*jax.tree.leaves(y))
         t, dt = jnp.asarray(t, dtype), jnp.asarray(dt, dtype)
@@ -160,4 +160,5 @@ class Splitting(AbstractMethod):
             z = renormalized_rotations(z, self.scene.rotation_rows)
         y_next = self.scene.unpack(z, y, args)
         field_now = self.generator(vector_field, t, y, args)
-        return y_next, self.increment_between(y, y_next), flag_nonfinite(RESULTS.successful, y_next), jnp.array(0, jnp.int32), field_now
+        result = flag_nonfinite(RESULTS.successful, y_next)
+        return Step(y_next, self.increment_between(y, y_next), result, jnp.array(0, jnp.int32), field_now)

@@ -35,7 +35,7 @@ from jaxtyping import PyTree
 from .bundles import AbstractBundle, AlgebraPair, BundleElement
 from .coordinates import AbstractCoordinates, Exp
 from .exact_flows import is_vectorised
-from .method import RESULTS, AbstractFieldOnBundle, AbstractMethod, Iterations, Time, VectorField, first_failure, flag_nonfinite
+from .method import RESULTS, AbstractFieldOnBundle, AbstractMethod, Step, Time, VectorField, first_failure, flag_nonfinite
 from .stage_plan import COUPLED, Explicit, plan_stages, stage_dependence
 from .tableaus import PartitionedTableau, stormer_verlet
 
@@ -176,69 +176,63 @@ class PRKMK(AbstractMethod):
                 f"build it with form={vector_field.form!r} (scene.method(tableau) does)."
             )
 
-    def initial_guesses(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None):
-        """The state `step_with_guesses` carries, before the first step: the
-        field X(t₀, y₀), and the same field as every stage slope (so the first
-        step starts from the field at y₀, as `step` does)."""
+    def initial_carried(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None):
+        """(X(t, y), the same field as every stage slope): a first step starts
+        its implicit stages from the field at y."""
         x = self.generator(vector_field, t, y, args)
         return x, tuple(x for _ in range(self.tableau.num_stages))
 
-    def step_with_guesses(
-        self, vector_field: VectorField, t: Time, y: BundleElement, dt: Time, args: PyTree, carried
-    ) -> tuple[BundleElement, AlgebraPair, RESULTS, Iterations, Any]:
-        """As `step_with_increment`, with the implicit stages started from the
-        previous step's stage slopes, each moved as much as the field at the
-        step's start moved over that step: Kᵢ ≈ Kᵢ_prev + X(tₙ, yₙ) − X(tₙ₋₁,
-        yₙ₋₁), an O(h²) guess where X(tₙ, yₙ) alone is O(h). They converge to
-        the same tolerance either way. `carried` is what the previous call
-        returned last (or `initial_guesses`); returns (y_next, increment,
-        result, iterations, carried for the next step), whose first entry
-        is the field at (t, y)."""
+    def carried_step(self, vector_field: VectorField, t: Time, y: BundleElement, dt: Time, args: PyTree, carried) -> Step:
+        """One step, the implicit stages started from the previous step's
+        stage slopes, each moved as much as the field at the step's start
+        moved over that step: Kᵢ ≈ Kᵢ_prev + X(tₙ, yₙ) − X(tₙ₋₁, yₙ₋₁), an O(h²)
+        guess where X(tₙ, yₙ) alone is O(h). `carried` is (X(tₙ₋₁, yₙ₋₁),
+        ((K₁, L₁), …, (K_s, L_s))) from the previous step (or
+        `initial_carried`); the step hands on (X(tₙ, yₙ), its own slopes)."""
+        self.check_vector_field(vector_field, t, y, args)
+        zeros = self.bundle.algebra_zeros(y)
+        if not (isinstance(carried, (tuple, list)) and len(carried) == 2):
+            raise ValueError(f"carried must be (the field at the step's start, the stage slopes), got {jax.tree.structure(carried)}.")
+        _check_pairs("carried's field", (carried[0],), zeros)
+        _check_pairs("carried's stage slopes", carried[1], zeros, self.tableau.num_stages)
         field_now, guesses = self.extrapolated_guesses(vector_field, t, y, args, carried)
-        y_next, u_next, result, iterations, stages = self.step_with_stages(vector_field, t, y, dt, args, field_now, guesses)
-        return y_next, u_next, result, iterations, (field_now, stages)
+        y_next, increment, result, iterations, stages = self._solve_step(vector_field, t, y, dt, args, field_now, guesses)
+        return Step(y_next, increment, result, iterations, (field_now, stages))
 
     def extrapolated_guesses(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree, carried):
         """(X(tₙ, yₙ), the stage guesses Kᵢ_prev + X(tₙ, yₙ) − X(tₙ₋₁, yₙ₋₁))
-        from what the previous step carried (see `step_with_guesses`)."""
+        from what the previous step carried (see `carried_step`)."""
         previous_field, previous_stages = carried
         field_now = self.generator(vector_field, t, y, args)
         change = jax.tree.map(jnp.subtract, field_now, previous_field)
         return field_now, tuple(jax.tree.map(jnp.add, stage, change) for stage in previous_stages)
 
-    def step_with_stages(
+    def _solve_step(
         self,
         vector_field: VectorField,
         t: Time,
         y: BundleElement,
         dt: Time,
-        args: PyTree = None,
-        field_at_start: AlgebraPair | None = None,
-        stage_guesses: tuple[AlgebraPair, ...] | None = None,
+        args: PyTree,
+        field_at_start: AlgebraPair,
+        stage_guesses: tuple[AlgebraPair, ...],
     ):
         """One step from (t, y) to t + dt. Returns (y_next, increment, result,
         iterations, stage slopes ((K₁, L₁), …, (K_s, L_s))).
 
-        `field_at_start`, if given, is `generator(vector_field, t, y, args)`
-        already evaluated; it is used where the step needs the field at
-        (t, y): the implicit stages' default starting guess and explicit
-        stages with U = 0 at c = 0. `stage_guesses`, if given, are the
-        implicit stages' starting values, one (K_i, L_i) per stage (default:
-        every slope starts at the field at yₙ)."""
-        self.check_vector_field(vector_field, t, y, args)
+        `field_at_start` is `generator(vector_field, t, y, args)`, used where
+        the step needs the field at (t, y) (explicit stages with U = 0 at
+        c = 0); `stage_guesses` are the implicit stages' starting values, one
+        (K_i, L_i) per stage."""
         tab = self.tableau
         dtype = jnp.result_type(*jax.tree.leaves(y))
         dt = jnp.asarray(dt, dtype)
         t = jnp.asarray(t, dtype)
         zeros = self.bundle.algebra_zeros(y)
-        _check_pairs("field_at_start", None if field_at_start is None else (field_at_start,), zeros)
-        _check_pairs("stage_guesses", stage_guesses, zeros, tab.num_stages)
+        field_at_yn = tuple(jnp.asarray(x, dtype) for x in field_at_start)
 
         def field(tt, Y):
             return self.generator(vector_field, tt, Y, args)
-
-        def field_at_yn():
-            return field(t, y) if field_at_start is None else tuple(jnp.asarray(x, dtype) for x in field_at_start)
 
         def stage_slope(i, first, second):
             # U_i = h (Σ_j a¹_ij K_j, Σ_j a²_ij L_j), Y_i = f(U_i)⊙yₙ, slope_i = df⁻¹(X_i).
@@ -250,7 +244,7 @@ class PRKMK(AbstractMethod):
             v = static_combination(dt, tab.a_second[i], second, zeros[1])
             tt = t + float(tab.c_first[i]) * dt
             if u is None and v is None:  # U_i = 0: Y_i = yₙ and df⁻¹_0 = I
-                return field_at_yn() if tab.c_first[i] == 0 else field(tt, y)
+                return field_at_yn if tab.c_first[i] == 0 else field(tt, y)
             # v None (no L enters this stage: L ≡ 0, or a zero row of A²) stays
             # None: the stage point then skips the fiber part of f(U).
             return self.slope_at(vector_field, tt, (zeros[0] if u is None else u, v), y, args)
@@ -262,7 +256,6 @@ class PRKMK(AbstractMethod):
         slopes: list[list] = [[None] * tab.num_stages, [None] * tab.num_stages]
         result = RESULTS.successful
         iterations = jnp.array(0, jnp.int32)
-        start = None
         for part in plan:
             if isinstance(part, Explicit):
                 pair = stage_slope(part.stage, *slopes)
@@ -277,12 +270,7 @@ class PRKMK(AbstractMethod):
                 pairs = {i: stage_slope(i, *trial) for i in part.stages}
                 return tuple(pairs[i][c] for i, c in part.slopes)
 
-            if stage_guesses is None:
-                # df⁻¹_0 = I: the slope at U = 0 is the field at yₙ.
-                start = field_at_yn() if start is None else start
-                guess = tuple(start[c] for _, c in part.slopes)
-            else:
-                guess = tuple(jnp.asarray(stage_guesses[i][c], dtype) for i, c in part.slopes)
+            guess = tuple(jnp.asarray(stage_guesses[i][c], dtype) for i, c in part.slopes)
             block, block_result, n = self.solve_implicit(block_slopes, guess, dtype)
             result = first_failure(result, block_result)
             iterations = iterations + n
@@ -291,7 +279,7 @@ class PRKMK(AbstractMethod):
         return self._finish_step(dt, y, slopes[0], slopes[1], zeros, result, iterations)
 
     def _finish_step(self, dt, y, first, second, zeros, result, iterations):
-        """y_{n+1} = f(h Σ bᵢ (Kᵢ, Lᵢ))⊙yₙ and what `step_with_stages` returns;
+        """y_{n+1} = f(h Σ bᵢ (Kᵢ, Lᵢ))⊙yₙ and what `_solve_step` returns;
         a slope None is one the plan never computed, identically zero (L when
         η ≡ 0), and is left out of the sums."""
         tab = self.tableau

@@ -121,7 +121,8 @@ def final_state_by_steps(method: pk.AbstractMethod, field):
     def run(y0, dt, n, args):
         def one_step(i, carry):
             y, converged = carry
-            y, result, _ = method.step(field, i * dt, y, dt, args)
+            step = method.step(field, i * dt, y, dt, args)
+            y, result = step.y, step.result
             return y, converged & (result == pk.RESULTS.successful)
 
         return jax.lax.fori_loop(0, n, one_step, (y0, jnp.array(True)))

@@ -123,7 +123,7 @@ def _classical_step_map(tab):
 
     def step(z):
         y = pk.BundleElement(pk.VectorSpace(z[:1]), pk.VectorSpace(z[1:]))
-        y1 = method.step(_pendulum, 0.0, y, 0.3)[0]
+        y1 = method.step(_pendulum, 0.0, y, 0.3).y
         return jnp.concatenate([y1.base.value, y1.fiber.value])
 
     return step

@@ -294,12 +294,12 @@ def test_the_wrappers_take_a_splitting():
     steps, and Composition composes it like any symmetric base."""
     y0, t, h = _state(0), 0.0, 0.3
     strang = FREE.splitting()
-    step = strang.step(FREE, t, y0, h, INERTIA)[0]
-    assert max_leaf_difference(pk.Adjoint(strang).step(FREE, t, y0, h, INERTIA)[0], step) == 0
-    half = strang.step(FREE, t, strang.step(FREE, t, y0, h / 2, INERTIA)[0], h / 2, INERTIA)[0]
-    assert max_leaf_difference(pk.Symmetrized(strang).step(FREE, t, y0, h, INERTIA)[0], half) < 1e-15
-    composed = pk.Composition(strang, pk.suzuki_5).step(FREE, t, y0, h, INERTIA)[0]
-    fused = FREE.splitting(pk.suzuki_5).step(FREE, t, y0, h, INERTIA)[0]
+    step = strang.step(FREE, t, y0, h, INERTIA).y
+    assert max_leaf_difference(pk.Adjoint(strang).step(FREE, t, y0, h, INERTIA).y, step) == 0
+    half = strang.step(FREE, t, strang.step(FREE, t, y0, h / 2, INERTIA).y, h / 2, INERTIA).y
+    assert max_leaf_difference(pk.Symmetrized(strang).step(FREE, t, y0, h, INERTIA).y, half) < 1e-15
+    composed = pk.Composition(strang, pk.suzuki_5).step(FREE, t, y0, h, INERTIA).y
+    fused = FREE.splitting(pk.suzuki_5).step(FREE, t, y0, h, INERTIA).y
     assert max_leaf_difference(composed, fused) < 1e-14
 
 

@@ -62,20 +62,20 @@ def test_section_4_3_update_formulas():
 
     # G×g, (4.8): g₁ = exp(u₁)g₀, w₁ = v₁ + w₀ — the field (2.2–2.3) is (ξ, η).
     direct = pk.DirectProduct(pk.SO3)
-    y1 = se(direct).step(_space_field(lambda y: y.fiber), 0.0, pk.BundleElement(pk.SO3(g0), w0), H)[0]
+    y1 = se(direct).step(_space_field(lambda y: y.fiber), 0.0, pk.BundleElement(pk.SO3(g0), w0), H).y
     np.testing.assert_allclose(y1.base.matrix, g1, atol=1e-13)
     np.testing.assert_allclose(y1.fiber, v1 + w0, atol=1e-13)
 
     # G⋉g left, (4.11): w₁ = Ad_{g₀⁻¹}(dexp_{u₁}(v₁)) + w₀, for w' = Ad_{g⁻¹}η
     # i.e. the space-form generator (ξ, η).
     semi = pk.Semidirect(pk.SO3, "left")
-    y1 = se(semi).step(_space_field(lambda y: y.fiber), 0.0, pk.BundleElement(pk.SO3(g0), w0), H)[0]
+    y1 = se(semi).step(_space_field(lambda y: y.fiber), 0.0, pk.BundleElement(pk.SO3(g0), w0), H).y
     np.testing.assert_allclose(y1.base.matrix, g1, atol=1e-13)
     np.testing.assert_allclose(y1.fiber, g0.T @ _left_dexp_by_quadrature(u1, v1) + w0, atol=1e-13)
 
     # G×G, (4.14): p₁ = exp(v₁)p₀, with w read from p as its logarithm.
     cart = pk.Cartesian(pk.SO3)
-    y1 = se(cart).step(_space_field(lambda y: y.fiber.log()), 0.0, pk.BundleElement(pk.SO3(g0), p0), H)[0]
+    y1 = se(cart).step(_space_field(lambda y: y.fiber.log()), 0.0, pk.BundleElement(pk.SO3(g0), p0), H).y
     np.testing.assert_allclose(y1.base.matrix, g1, atol=1e-13)
     np.testing.assert_allclose(y1.fiber.matrix, pk.SO3.exp(v1).matrix @ p0.matrix, atol=1e-13)
 
@@ -113,7 +113,8 @@ def test_classical_prk_on_vector_space(tab, layout, coords):
     q0, p0 = np.array([1.2, -0.4]), np.array([0.3, 0.8])
     method = pk.PRKMK(pk.Cartesian(pk.VectorSpace), coords, tab, form="space", explicit_stages=layout)
     y = pk.BundleElement(pk.VectorSpace(jnp.asarray(q0)), pk.VectorSpace(jnp.asarray(p0)))
-    y1, result, _ = method.step(_pendulum, 0.3, y, 0.2, 0.7)
+    step = method.step(_pendulum, 0.3, y, 0.2, 0.7)
+    y1, result = step.y, step.result
     assert result == pk.RESULTS.successful
     q1, p1 = _classical_prk(tab, q0, p0, 0.3, 0.2, 0.7)
     np.testing.assert_allclose(y1.base.value, q1, atol=1e-13)
@@ -193,11 +194,15 @@ def test_stage_guesses_change_the_iterations_not_the_step(tab):
     field = rigid_body_field(bundle, "body")
     y0 = initial_state(bundle)
     args = jnp.asarray(INERTIA)
-    y_default, _, result, n_default, stages = method.step_with_stages(field, 0.0, y0, H, args)
-    assert result == pk.RESULTS.successful
+    default = method.step(field, 0.0, y0, H, args)
+    y_default, n_default, stages = default.y, default.iterations, default.carried[1]
+    assert default.result == pk.RESULTS.successful
+    # Carried in with the field at y0 itself, the stage slopes are the guesses
+    # unchanged (they move by the change of that field, here zero).
+    x0 = method.generator(field, 0.0, y0, args)
     far = tuple((k_i + 0.3, l_i - 0.2) for k_i, l_i in stages)
-    y_far, _, _, n_far, _ = method.step_with_stages(field, 0.0, y0, H, args, stage_guesses=far)
-    y_exact, _, _, n_exact, _ = method.step_with_stages(field, 0.0, y0, H, args, stage_guesses=stages)
+    from_far, from_exact = (method.step(field, 0.0, y0, H, args, (x0, guesses)) for guesses in (far, stages))
+    (y_far, n_far), (y_exact, n_exact) = ((s.y, s.iterations) for s in (from_far, from_exact))
     for y in (y_far, y_exact):
         np.testing.assert_allclose(y.fiber, y_default.fiber, rtol=0, atol=1e-12)
         np.testing.assert_allclose(y.base.matrix, y_default.base.matrix, rtol=0, atol=1e-12)
@@ -221,21 +226,24 @@ def test_integrate_extrapolated_guesses_save_iterations():
     plain_iterations = 0
     step = eqx.filter_jit(method.step)  # one compilation for the 50 steps
     for n in range(steps):
-        y, result, iterations = step(field, jnp.asarray(n * h), y, h, args)
-        assert result == pk.RESULTS.successful
-        plain_iterations += int(iterations)
+        taken = step(field, jnp.asarray(n * h), y, h, args)
+        assert taken.result == pk.RESULTS.successful
+        y = taken.y
+        plain_iterations += int(taken.iterations)
     np.testing.assert_allclose(traj.ys.fiber[-1], y.fiber, rtol=0, atol=1e-12)
     assert int(traj.stats["num_iterations"]) < 0.9 * plain_iterations, (int(traj.stats["num_iterations"]), plain_iterations)
 
 
-def test_stage_guesses_of_the_wrong_structure_are_refused():
+def test_carried_of_the_wrong_structure_is_refused():
     bundle = pk.Cotangent(pk.SO3)
     method = pk.PRKMK(bundle, pk.Exp(), pk.lobatto_iiia_iiib4, form="body")
     field = rigid_body_field(bundle, "body")
     y0, args, zero = initial_state(bundle), jnp.asarray(INERTIA), jnp.zeros(3)
     with pytest.raises(ValueError, match="tuple of 3 algebra pairs"):
-        method.step_with_stages(field, 0.0, y0, H, args, stage_guesses=((zero, zero),) * 2)
+        method.step(field, 0.0, y0, H, args, ((zero, zero), ((zero, zero),) * 2))
     with pytest.raises(ValueError, match="every entry must be a pair"):
-        method.step_with_stages(field, 0.0, y0, H, args, stage_guesses=((zero, jnp.zeros(4)),) * 3)
-    with pytest.raises(ValueError, match="field_at_start"):
-        method.step_with_stages(field, 0.0, y0, H, args, field_at_start=(zero,))
+        method.step(field, 0.0, y0, H, args, ((zero, zero), ((zero, jnp.zeros(4)),) * 3))
+    with pytest.raises(ValueError, match="carried's field"):
+        method.step(field, 0.0, y0, H, args, ((zero,), ((zero, zero),) * 3))
+    with pytest.raises(ValueError, match="carried must be"):
+        method.step(field, 0.0, y0, H, args, ((zero, zero),))

@@ -25,7 +25,7 @@ from jaxtyping import Array, PyTree
 
 from .bundles import BundleElement
 from .compositions import CompositionCoefficients
-from .method import RESULTS, AbstractMethod, VectorField, first_failure, flag_nonfinite
+from .method import RESULTS, AbstractMethod, Step, VectorField, first_failure, flag_nonfinite
 from .splitting import Splitting
 from .step import PRKMK, static_combination
 
@@ -80,15 +80,15 @@ class Adjoint(AbstractMadeOfSteps):
     def is_symmetric(self) -> bool:
         return self.method.is_symmetric
 
-    def initial_guesses(self, vector_field, t, y, args=None):
-        return self.method.initial_guesses(vector_field, t, y, args)
+    def initial_carried(self, vector_field, t, y, args=None):
+        return self.method.initial_carried(vector_field, t, y, args)
 
     def start_field(self, carried):
         return self.method.start_field(carried)
 
-    def step_with_guesses(self, vector_field, t, y, dt, args, carried):
+    def carried_step(self, vector_field, t, y, dt, args, carried) -> Step:
         if isinstance(self.method, Splitting):  # symmetric: Φ* = Φ
-            return self.method.step_with_guesses(vector_field, t, y, dt, args, carried)
+            return self.method.carried_step(vector_field, t, y, dt, args, carried)
         method, tab = self.method, self.method.tableau
         dtype = jnp.result_type(*jax.tree.leaves(y))
         dt = jnp.asarray(dt, dtype)
@@ -120,7 +120,7 @@ class Adjoint(AbstractMadeOfSteps):
         stages, result, iterations = method.solve_implicit(all_slopes, guesses, dtype)
         u_next = increment(stages)
         y_next = method.advance(u_next, y)
-        return y_next, u_next, flag_nonfinite(result, y_next), iterations, (field_now, stages)
+        return Step(y_next, u_next, flag_nonfinite(result, y_next), iterations, (field_now, stages))
 
 
 class Symmetrized(AbstractMadeOfSteps):
@@ -149,23 +149,22 @@ class Symmetrized(AbstractMadeOfSteps):
     def is_symmetric(self) -> bool:
         return True
 
-    def initial_guesses(self, vector_field, t, y, args=None):
-        guesses = self.method.initial_guesses(vector_field, t, y, args)
-        return guesses, guesses
+    def initial_carried(self, vector_field, t, y, args=None):
+        carried = self.method.initial_carried(vector_field, t, y, args)
+        return carried, carried
 
     def start_field(self, carried):
         return self.method.start_field(carried[0])
 
-    def step_with_guesses(self, vector_field, t, y, dt, args, carried):
+    def carried_step(self, vector_field, t, y, dt, args, carried) -> Step:
         dtype = jnp.result_type(*jax.tree.leaves(y))
         half = jnp.asarray(dt, dtype) / 2
         t = jnp.asarray(t, dtype)
-        y_half, _, result, n_first, carried_first = self.method.step_with_guesses(vector_field, t, y, half, args, carried[0])
-        y_next, _, result_second, n_second, carried_second = self.adjoint.step_with_guesses(
-            vector_field, t + half, y_half, half, args, carried[1]
-        )
-        increment = self.increment_between(y, y_next)
-        return y_next, increment, first_failure(result, result_second), n_first + n_second, (carried_first, carried_second)
+        first = self.method.step(vector_field, t, y, half, args, carried[0])
+        second = self.adjoint.step(vector_field, t + half, first.y, half, args, carried[1])
+        result = first_failure(first.result, second.result)
+        increment = self.increment_between(y, second.y)
+        return Step(second.y, increment, result, first.iterations + second.iterations, (first.carried, second.carried))
 
 
 class Composition(AbstractMadeOfSteps):
@@ -187,7 +186,7 @@ class Composition(AbstractMadeOfSteps):
 
     The sub-steps run in a `lax.scan`, so compile time does not grow with m;
     each sub-step's implicit stages start from the same sub-step of the
-    previous step (`step_with_guesses`). Negative fractions step backwards
+    previous step (`Step.carried`). Negative fractions step backwards
     in time, which every PRKMK method allows.
     """
 
@@ -219,15 +218,15 @@ class Composition(AbstractMadeOfSteps):
         # A palindrome of symmetric steps is symmetric.
         return self.method.is_symmetric or self.assume_symmetric_base
 
-    def initial_guesses(self, vector_field, t, y, args=None):
+    def initial_carried(self, vector_field, t, y, args=None):
         m = self.coefficients.num_steps
-        guesses = self.method.initial_guesses(vector_field, t, y, args)
-        return jax.tree.map(lambda x: jnp.broadcast_to(x, (m,) + jnp.shape(x)), guesses)
+        carried = self.method.initial_carried(vector_field, t, y, args)
+        return jax.tree.map(lambda x: jnp.broadcast_to(x, (m,) + jnp.shape(x)), carried)
 
     def start_field(self, carried):
         return self.method.start_field(jax.tree.map(lambda x: x[0], carried))
 
-    def step_with_guesses(self, vector_field, t, y, dt, args, carried):
+    def carried_step(self, vector_field, t, y, dt, args, carried) -> Step:
         dtype = jnp.result_type(*jax.tree.leaves(y))
         dt = jnp.asarray(dt, dtype)
         t = jnp.asarray(t, dtype)
@@ -237,14 +236,12 @@ class Composition(AbstractMadeOfSteps):
         def substep(state, inputs):
             y_k, result, iterations = state
             fraction, start, carried_k = inputs
-            y_next, _, result_k, n, carried_k = self.method.step_with_guesses(
-                vector_field, t + start * dt, y_k, fraction * dt, args, carried_k
-            )
-            return (y_next, first_failure(result, result_k), iterations + n), carried_k
+            sub = self.method.step(vector_field, t + start * dt, y_k, fraction * dt, args, carried_k)
+            return (sub.y, first_failure(result, sub.result), iterations + sub.iterations), sub.carried
 
         init = (y, RESULTS.successful, jnp.array(0, jnp.int32))
         (y_next, result, iterations), carried = jax.lax.scan(substep, init, (fractions, starts, carried))
-        return y_next, self.increment_between(y, y_next), result, iterations, carried
+        return Step(y_next, self.increment_between(y, y_next), result, iterations, carried)
 
 
 def symmetry_defect(
@@ -254,6 +251,6 @@ def symmetry_defect(
     or vector embedding): zero up to round-off and the stage tolerance for a
     symmetric method, O(h^{p+1}) for a non-symmetric one of order p."""
     t, dt = jnp.asarray(t), jnp.asarray(dt)
-    y_forward, _, _ = method.step(vector_field, t, y, dt, args)
-    y_back, _, _ = method.step(vector_field, t + dt, y_forward, -dt, args)
+    y_forward = method.step(vector_field, t, y, dt, args).y
+    y_back = method.step(vector_field, t + dt, y_forward, -dt, args).y
     return functools.reduce(jnp.maximum, [jnp.max(jnp.abs(a - b)) for a, b in zip(jax.tree.leaves(y_back), jax.tree.leaves(y))])
