@@ -6,9 +6,9 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.integrate import solve_ivp
 
 import prkmk_jax as pk
+from prkmk_jax.scenes import FreeRigidBody, SymmetricRigidBody
 from prkmk_jax.scenes.rigid_body import random_rotation, symmetric_initial_state
 
 INERTIA = np.array([7 / 8, 5 / 8, 1 / 4])
@@ -70,45 +70,21 @@ def state_vector(bundle, y) -> np.ndarray:
     return np.concatenate([np.asarray(y.base.matrix).reshape(*y.base.matrix.shape[:-2], 9), np.asarray(y.fiber)], axis=-1)
 
 
-def _reference_rhs(t, z, inertia, cartesian):
-    if cartesian:
-        q, p = z[:9].reshape(3, 3), z[9:].reshape(3, 3)
-        a = q.T @ p - p.T @ q
-        omega = np.array([a[2, 1], a[0, 2], a[1, 0]]) / inertia
-        oh = np.array(pk.hat(jnp.asarray(omega)))
-        return np.concatenate([(q @ oh).ravel(), (p @ oh).ravel()])
-    g, pi = z[:9].reshape(3, 3), z[9:]
-    omega = pi / inertia
-    oh = np.array([[0, -omega[2], omega[1]], [omega[2], 0, -omega[0]], [-omega[1], omega[0], 0]])
-    return np.concatenate([(g @ oh).ravel(), np.cross(pi, omega)])
-
-
 def reference(bundle, y0, t_end, inertia=INERTIA, t_eval=None) -> np.ndarray:
-    """DOP853 at rtol = atol = 1e-13 on the embedding ℝ⁹×ℝ³ (or ℝ⁹×ℝ⁹): the
-    state at `t_end`, or at each of `t_eval` (one row per time)."""
-    cartesian = isinstance(bundle, pk.Cartesian)
-    z0 = state_vector(bundle, y0)
-    sol = solve_ivp(
-        _reference_rhs, (0.0, t_end), z0, method="DOP853", rtol=1e-13, atol=1e-13, args=(np.asarray(inertia), cartesian), t_eval=t_eval
-    )
-    return sol.y[:, -1] if t_eval is None else sol.y.T
+    """The rigid body's reference solution on its embedding ℝ⁹×ℝ³ (ℝ⁹×ℝ⁹
+    on `Cartesian`: the symmetric body), the scene's
+    `reference_solution` (DOP853 at rtol = atol = 1e-13): the state at
+    `t_end`, or at each of `t_eval` (one row per time). The free body's
+    embedding is the same on every bundle of SO(3) and ℝ³."""
+    scene = SymmetricRigidBody() if isinstance(bundle, pk.Cartesian) else FreeRigidBody()
+    rows = scene.reference_solution(y0, [t_end] if t_eval is None else t_eval, jnp.asarray(inertia))
+    return rows[-1] if t_eval is None else rows
 
 
 def scene_reference(scene, y0, t_end, args, t_eval=None) -> np.ndarray:
-    """DOP853 at rtol = atol = 1e-13 on a scene's Euclidean embedding (its
-    `embedding_field`, which knows nothing of the PRKMK step): one row per
-    time of `t_eval`, or the states of the solver's own steps."""
-    embedding = jax.jit(scene.embedding_field)
-    sol = solve_ivp(
-        lambda t, z: np.asarray(embedding(t, jnp.asarray(z), args)),
-        (0.0, t_end),
-        np.asarray(scene.to_embedding(y0)),
-        method="DOP853",
-        rtol=1e-13,
-        atol=1e-13,
-        t_eval=t_eval,
-    )
-    return sol.y.T
+    """`scene.reference_solution` at each time of `t_eval`, or on a grid of
+    201 times from 0 to `t_end`: one row per time."""
+    return scene.reference_solution(y0, np.linspace(0.0, t_end, 201) if t_eval is None else t_eval, args)
 
 
 def final_state_by_steps(method: pk.AbstractMethod, field):

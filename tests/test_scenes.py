@@ -178,3 +178,25 @@ def test_three_so3_momenta_are_three_vectors_not_a_matrix(bundle):
         state = jax.tree.map(lambda a: a[k], states)
         np.testing.assert_allclose(both[k], symmetric.invariants(state, inertia)["energy"], rtol=1e-14)
         np.testing.assert_allclose(generator[0][k], symmetric(0.0, state, inertia)[0], rtol=1e-14, atol=1e-15)
+
+
+def test_reference_solution_follows_the_closed_form():
+    """The scene's reference (DOP853 on the embedding) against the free body's
+    elliptic-function solution, and the attitude kept on the group along it."""
+    q0, pi0 = _state(3)
+    ts = np.linspace(0.0, 10.0, 11)
+    rows = FreeRigidBody().reference_solution(pk.BundleElement(pk.SO3(q0), pi0), ts, jnp.asarray(PAPER_INERTIA))
+    assert rows.shape == (11, 12)
+    np.testing.assert_allclose(rows[:, 9:], elliptic_momentum(np.asarray(pi0), PAPER_INERTIA, ts), rtol=0, atol=1e-11)
+    q = rows[:, :9].reshape(-1, 3, 3)
+    np.testing.assert_allclose(np.swapaxes(q, -1, -2) @ q, np.broadcast_to(np.eye(3), q.shape), atol=1e-11)
+
+
+def test_reference_solution_refuses_a_batch_and_unordered_times():
+    q0, pi0 = _state(0)
+    body, inertia = FreeRigidBody(), jnp.asarray(PAPER_INERTIA)
+    batch = pk.BundleElement(pk.SO3(jnp.stack([q0, q0])), jnp.stack([pi0, pi0]))
+    with pytest.raises(ValueError, match="one trajectory"):
+        body.reference_solution(batch, [1.0], inertia)
+    with pytest.raises(ValueError, match="increasing times"):
+        body.reference_solution(pk.BundleElement(pk.SO3(q0), pi0), [2.0, 1.0], inertia)

@@ -10,7 +10,9 @@ import abc
 from typing import ClassVar, Literal
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, PyTree
 
 from ..bundles import AbstractBundle, AlgebraPair, BundleElement, Cotangent
@@ -49,6 +51,41 @@ class AbstractScene(AbstractFieldOnBundle):
         """dz/dt on the embedding, for Euclidean solvers (`diffrax.ODETerm`).
         Nothing there keeps the state on the group: that is what such a
         comparison measures."""
+
+    def reference_solution(
+        self, y0: BundleElement, ts, args: PyTree, *, t0: float = 0.0, rtol: float = 1e-13, atol: float = 1e-13
+    ) -> np.ndarray:
+        """The exact flow from (t0, y0), embedded (`to_embedding`), at each
+        time of `ts`: SciPy's DOP853 at `rtol`, `atol` on `embedding_field`,
+        which knows nothing of this library's methods, so it is the
+        reference for their errors and orders. One trajectory (`y0` without
+        batch axes), in float64 (it needs `jax_enable_x64`); the field runs
+        as one small compiled program on the host's CPU, where SciPy calls
+        it, whatever the default device. Returns a NumPy array with one row
+        per time of `ts`."""
+        from scipy.integrate import solve_ivp  # SciPy only where a reference is asked for
+
+        if jax.dtypes.canonicalize_dtype(np.float64) != np.float64:
+            raise ValueError("reference_solution solves in float64: enable it with jax.config.update('jax_enable_x64', True).")
+        times = np.atleast_1d(np.asarray(ts, dtype=float))
+        if times.ndim != 1 or times.size == 0 or np.any(np.diff(times) < 0) or times[0] < t0:
+            raise ValueError(f"ts must be one or more increasing times from t0 = {t0} on, got {ts!r}.")
+        z0 = np.asarray(self.to_embedding(y0), dtype=float)
+        if z0.ndim != 1:
+            raise ValueError(f"reference_solution takes one trajectory (y0 without batch axes); its embedding has shape {z0.shape}.")
+        if times[-1] == t0:
+            return np.repeat(z0[None], times.size, axis=0)
+        cpu = jax.devices("cpu")[0]
+        field = jax.jit(self.embedding_field)
+        args_on_cpu = jax.device_put(args, cpu)
+
+        def rhs(t, z):
+            return np.asarray(field(t, jax.device_put(z, cpu), args_on_cpu))
+
+        solution = solve_ivp(rhs, (t0, times[-1]), z0, method="DOP853", rtol=rtol, atol=atol, t_eval=times)
+        if not solution.success:
+            raise RuntimeError(f"the reference solve (DOP853) failed: {solution.message}")
+        return solution.y.T
 
     def method(self, tableau: PartitionedTableau, coordinates: AbstractCoordinates | None = None, **options) -> PRKMK:
         """The PRKMK method of `tableau` for this scene's bundle and form
