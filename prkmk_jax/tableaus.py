@@ -194,13 +194,21 @@ class PartitionedTableau:
             self.tolerance,
         )
 
+    def _arrays(self) -> tuple[np.ndarray, ...]:
+        return (self.a_first, self.b_first, self.c_first, self.a_second, self.b_second, self.c_second)
+
     def __hash__(self):
-        return hash(
-            (self.name, self.order, self.a_first.tobytes(), self.a_second.tobytes(), self.b_first.tobytes(), self.b_second.tobytes())
-        )
+        return hash((self.order, *(a.shape for a in self._arrays()), *(a.tobytes() for a in self._arrays())))
 
     def __eq__(self, other):
-        return isinstance(other, PartitionedTableau) and hash(self) == hash(other)
+        """Equal where the coefficients and the order are: the same method
+        whatever its name (one compiled program serves both, as the tableau
+        is a static field of `PRKMK`)."""
+        if not isinstance(other, PartitionedTableau):
+            return NotImplemented
+        return self.order == other.order and all(
+            a.shape == b.shape and np.array_equal(a, b) for a, b in zip(self._arrays(), other._arrays())
+        )
 
 
 def _f(rows):

@@ -58,3 +58,17 @@ def test_plan_of_the_tableau_alone():
     a = np.array([[0, 0], [1.0, 0]])
     heun = PartitionedTableau("heun", a, np.array([0.5, 0.5]), np.array([0, 1.0]), a, np.array([0.5, 0.5]), np.array([0, 1.0]), 2)
     assert plan_stages(heun, COUPLED) == (Explicit(0, (0, 1)), Explicit(1, (0, 1)))
+
+
+def test_tableaus_are_equal_where_their_coefficients_are():
+    """Equality and hash follow the arrays and the order, not the name: a
+    renamed copy is the same method (one compiled program), a changed weight
+    or order is another."""
+    sv = pk.stormer_verlet
+    renamed = PartitionedTableau("SV, renamed", sv.a_first, sv.b_first, sv.c_first, sv.a_second, sv.b_second, sv.c_second, sv.order)
+    assert renamed == sv and hash(renamed) == hash(sv)
+    assert pk.PRKMK(pk.Cotangent(pk.SO3), tableau=renamed) == pk.PRKMK(pk.Cotangent(pk.SO3), tableau=sv)
+    lower = PartitionedTableau("SV, order 1", sv.a_first, sv.b_first, sv.c_first, sv.a_second, sv.b_second, sv.c_second, 1)
+    assert lower != sv
+    assert sv.swapped() != sv  # Lobatto IIIB–IIIA: the same arrays in the other parts
+    assert pk.lobatto_iiia_iiib4 != sv and sv != "stormer_verlet"
