@@ -84,7 +84,7 @@ class AbstractBundle(eqx.Module):
     """A (co)tangent bundle of `base` made a Lie group."""
 
     base: eqx.AbstractVar[type[AbstractLieGroup]]
-    fiber_is_group: ClassVar[bool]
+    fiber_is_group: eqx.AbstractClassVar[bool]
     """True where the second factor is a group element (G×G)."""
 
     def __check_init__(self):
@@ -218,7 +218,7 @@ class DirectProduct(AbstractBundle):
     """TG ≅ G × g, the direct product (paper §2.1, Table 2.1)."""
 
     base: type[AbstractLieGroup] = eqx.field(static=True)
-    fiber_is_group: ClassVar[bool] = False
+    fiber_is_group: ClassVar[bool] = False  # pyright: ignore[reportIncompatibleVariableOverride]  # implements an AbstractClassVar
 
     def multiply(self, a, b):
         return BundleElement(a.base.multiply(b.base), a.fiber + b.fiber)
@@ -258,7 +258,7 @@ class Cartesian(AbstractBundle):
     """TG ≅ G × G, the Cartesian product (paper §2.3, Table 2.3)."""
 
     base: type[AbstractLieGroup] = eqx.field(static=True)
-    fiber_is_group: ClassVar[bool] = True
+    fiber_is_group: ClassVar[bool] = True  # pyright: ignore[reportIncompatibleVariableOverride]  # implements an AbstractClassVar
 
     def multiply(self, a, b):
         return BundleElement(a.base.multiply(b.base), a.fiber.multiply(b.fiber))
@@ -303,7 +303,7 @@ class AbstractSemidirect(AbstractBundle):
     """
 
     trivialization: eqx.AbstractVar[Literal["left", "right"]]
-    fiber_is_group: ClassVar[bool] = False
+    fiber_is_group: ClassVar[bool] = False  # pyright: ignore[reportIncompatibleVariableOverride]  # implements an AbstractClassVar
 
     def _sign(self):
         return -1.0 if self.trivialization == "left" else 1.0

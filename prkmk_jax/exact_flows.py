@@ -83,7 +83,7 @@ def rotated_rows(z: Packed, pairs: tuple[tuple[int, int], ...], sine: Array, cos
 class AbstractExactFlow(eqx.Module):
     """One part of a split vector field and its flow."""
 
-    always_materialised: ClassVar[bool]
+    always_materialised: eqx.AbstractClassVar[bool]
     """Whether `Splitting` has XLA compute this flow's result once even for a
     few trajectories: a flow of cheap arithmetic alone would otherwise be
     recomputed inside each later sub-step that reads it (see
@@ -101,7 +101,7 @@ class AxisRotation(AbstractExactFlow):
     `pairs` turns by the angle h·`rate`(z, args), which this flow leaves
     constant (so the flow is exact for `Exp`, see the module docstring)."""
 
-    always_materialised: ClassVar[bool] = False  # XLA computes a sine once
+    always_materialised: ClassVar[bool] = False  # pyright: ignore[reportIncompatibleVariableOverride]  # XLA computes a sine once
     axis: int = eqx.field(static=True)
     """The body axis, 0, 1 or 2."""
     pairs: tuple[tuple[int, int], ...] = eqx.field(static=True)
@@ -123,7 +123,7 @@ class MomentumKick(AbstractExactFlow):
     """The flow of a part that moves the momentum only, at a rate that does
     not depend on the momentum: rows `rows` of z grow by h·`torque`(t, z, args)."""
 
-    always_materialised: ClassVar[bool] = True
+    always_materialised: ClassVar[bool] = True  # pyright: ignore[reportIncompatibleVariableOverride]  # implements an AbstractClassVar
     rows: tuple[int, ...] = eqx.field(static=True)
     """The rows of the momentum in the packed state."""
     torque: Callable[[Array, Packed, PyTree], Array]

@@ -15,7 +15,7 @@ Conventions used throughout the package (they fix every sign):
 """
 
 import abc
-from typing import ClassVar, Self
+from typing import Self
 
 import equinox as eqx
 from jaxtyping import Array
@@ -24,9 +24,9 @@ from jaxtyping import Array
 class AbstractLieGroup(eqx.Module):
     """An element of a (matrix) Lie group G, with the algebra operations of g."""
 
-    algebra_ndim: ClassVar[int]
+    algebra_ndim: eqx.AbstractClassVar[int]
     """Number of trailing axes of an algebra element (1: vectors, 2: matrices)."""
-    bi_invariant_pairing: ClassVar[bool]
+    bi_invariant_pairing: eqx.AbstractClassVar[bool]
     """Whether g ≅ g* through a pairing for which every ad_u is skew-adjoint.
 
     Then Ad*_g = Ad_{g⁻¹} and ad*_u = −ad_u under the identification, which is

@@ -124,8 +124,8 @@ class SO3(AbstractQuadraticGroup):
     matrix: Float[Array, "*batch 3 3"] = eqx.field(converter=as_array)
     """Rotation matrix R with RᵀR = I, det R = 1."""
 
-    algebra_ndim: ClassVar[int] = 1
-    bi_invariant_pairing: ClassVar[bool] = True
+    algebra_ndim: ClassVar[int] = 1  # pyright: ignore[reportIncompatibleVariableOverride]  # implements an AbstractClassVar
+    bi_invariant_pairing: ClassVar[bool] = True  # pyright: ignore[reportIncompatibleVariableOverride]  # implements an AbstractClassVar
 
     def __check_init__(self):
         check_floating(self.matrix, "an SO3 matrix")

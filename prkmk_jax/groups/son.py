@@ -213,8 +213,8 @@ class SOn(AbstractQuadraticGroup):
     matrix: Float[Array, "*batch n n"] = eqx.field(converter=as_array)
     """Orthogonal matrix with det = 1."""
 
-    algebra_ndim: ClassVar[int] = 2
-    bi_invariant_pairing: ClassVar[bool] = True
+    algebra_ndim: ClassVar[int] = 2  # pyright: ignore[reportIncompatibleVariableOverride]  # implements an AbstractClassVar
+    bi_invariant_pairing: ClassVar[bool] = True  # pyright: ignore[reportIncompatibleVariableOverride]  # implements an AbstractClassVar
 
     def __check_init__(self):
         check_floating(self.matrix, "an SOn matrix")

@@ -26,8 +26,8 @@ class VectorSpace(AbstractQuadraticGroup):
     def __check_init__(self):
         check_floating(self.value, "a VectorSpace value")
 
-    algebra_ndim: ClassVar[int] = 1
-    bi_invariant_pairing: ClassVar[bool] = True
+    algebra_ndim: ClassVar[int] = 1  # pyright: ignore[reportIncompatibleVariableOverride]  # implements an AbstractClassVar
+    bi_invariant_pairing: ClassVar[bool] = True  # pyright: ignore[reportIncompatibleVariableOverride]  # implements an AbstractClassVar
 
     @classmethod
     def exp(cls, u: Vector) -> Self:
