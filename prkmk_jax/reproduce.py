@@ -40,8 +40,8 @@ SO4_MASSES = np.array([0.9, 0.7, 0.5, 0.3])
 @dataclasses.dataclass(frozen=True)
 class Run:
     name: str
-    scene: str  # "symmetric" (§5.1) or "unreduced" (§5.2)
-    bundle: AbstractBundle
+    scene: AbstractScene
+    """The symmetric body (§5.1) or the unreduced body (§5.2), on its bundle."""
     coordinates: str
     tableau: PartitionedTableau
     h: float
@@ -54,25 +54,39 @@ class Run:
     def num_steps(self) -> int:
         return int(round(self.t_end / self.h))
 
+    @property
+    def bundle(self) -> AbstractBundle:
+        return self.scene.bundle
+
+    @property
+    def is_symmetric_body(self) -> bool:
+        return isinstance(self.scene, rb.SymmetricRigidBody)
+
+    @property
+    def scene_label(self) -> str:
+        """ "symmetric" or "unreduced", as `results.json` names the scenes."""
+        return "symmetric" if self.is_symmetric_body else "unreduced"
+
 
 def paper_runs(time_scale: float = 1.0) -> list[Run]:
     """The runs of §5 (figures 5.1–5.4) and the companion runs; `time_scale`
     shortens every T (for smoke tests)."""
-    cart, cot, direct = Cartesian(SO3), Cotangent(SO3), DirectProduct(SO3)
+    symmetric, symmetric_so4 = rb.SymmetricRigidBody(Cartesian(SO3)), rb.SymmetricRigidBody(Cartesian(SOn))
+    unreduced, unreduced_direct = rb.FreeRigidBody(Cotangent(SO3)), rb.FreeRigidBody(DirectProduct(SO3))
     runs = []
     for coords in COORDINATES:
         runs += [
-            Run(f"sym_SE_{coords}", "symmetric", cart, coords, symplectic_euler, 0.1, 50 * time_scale, "fig5_1"),
-            Run(f"sym_SV_{coords}", "symmetric", cart, coords, stormer_verlet, 0.1, 100 * time_scale, "fig5_2"),
-            Run(f"unreduced_SE_{coords}", "unreduced", cot, coords, symplectic_euler, 0.01, 50 * time_scale, "fig5_3"),
-            Run(f"unreduced_SV_{coords}", "unreduced", cot, coords, stormer_verlet, 0.01, 50 * time_scale, "fig5_4"),
-            Run(f"unreduced_direct_SE_{coords}", "unreduced", direct, coords, symplectic_euler, 0.01, 50 * time_scale),
-            Run(f"unreduced_direct_SV_{coords}", "unreduced", direct, coords, stormer_verlet, 0.01, 50 * time_scale),
+            Run(f"sym_SE_{coords}", symmetric, coords, symplectic_euler, 0.1, 50 * time_scale, "fig5_1"),
+            Run(f"sym_SV_{coords}", symmetric, coords, stormer_verlet, 0.1, 100 * time_scale, "fig5_2"),
+            Run(f"unreduced_SE_{coords}", unreduced, coords, symplectic_euler, 0.01, 50 * time_scale, "fig5_3"),
+            Run(f"unreduced_SV_{coords}", unreduced, coords, stormer_verlet, 0.01, 50 * time_scale, "fig5_4"),
+            Run(f"unreduced_direct_SE_{coords}", unreduced_direct, coords, symplectic_euler, 0.01, 50 * time_scale),
+            Run(f"unreduced_direct_SV_{coords}", unreduced_direct, coords, stormer_verlet, 0.01, 50 * time_scale),
         ]
     runs += [
-        Run("sym_SE_exp_T1000", "symmetric", cart, "exp", symplectic_euler, 0.1, 1000 * time_scale, save_every=10),
-        Run("sym_so4_SE_exp", "symmetric", Cartesian(SOn), "exp", symplectic_euler, 0.1, 50 * time_scale, n=4),
-        Run("sym_so4_SV_exp", "symmetric", Cartesian(SOn), "exp", stormer_verlet, 0.1, 100 * time_scale, n=4),
+        Run("sym_SE_exp_T1000", symmetric, "exp", symplectic_euler, 0.1, 1000 * time_scale, save_every=10),
+        Run("sym_so4_SE_exp", symmetric_so4, "exp", symplectic_euler, 0.1, 50 * time_scale, n=4),
+        Run("sym_so4_SV_exp", symmetric_so4, "exp", stormer_verlet, 0.1, 100 * time_scale, n=4),
     ]
     return runs
 
@@ -82,17 +96,12 @@ def initial_data(run: Run, seed: int):
     q0 = rb.random_rotation(seed, run.n)
     if run.n == 3:
         inertia = jnp.asarray(rb.PAPER_INERTIA)
-        if run.scene == "symmetric":
+        if run.is_symmetric_body:
             return rb.symmetric_initial_state(q0, rb.PAPER_MOMENTUM), inertia
         return rb.from_attitude_and_momentum(run.bundle, jnp.asarray(q0), jnp.asarray(rb.PAPER_MOMENTUM)), inertia
     a = np.random.default_rng(seed + 1).normal(size=(run.n, run.n))
     m0 = 0.4 * (a - a.T)
     return rb.symmetric_initial_state(q0, m0), jnp.asarray(SO4_MASSES)
-
-
-def scene_of(run: Run) -> AbstractScene:
-    """The scene object of a run: its vector field and its methods."""
-    return rb.SymmetricRigidBody(run.bundle) if run.scene == "symmetric" else rb.FreeRigidBody(run.bundle)
 
 
 def _step_map(method, field, bundle, h, inertia):
@@ -111,8 +120,8 @@ def method_of(run: Run) -> PRKMK:
     iteration needs about 94 iterations a step there, Newton 4. The other
     runs converge in ≤ 24 fixed-point iterations, cheaper than Newton's
     dense Jacobians (on SO(4)² Newton is the slower of the two)."""
-    root_finder = optx.Newton(rtol=1e-12, atol=1e-12) if (run.scene == "symmetric" and run.n == 3) else None
-    return scene_of(run).method(run.tableau, COORDINATES[run.coordinates], root_finder=root_finder)
+    root_finder = optx.Newton(rtol=1e-12, atol=1e-12) if (run.is_symmetric_body and run.n == 3) else None
+    return run.scene.method(run.tableau, COORDINATES[run.coordinates], root_finder=root_finder)
 
 
 DEFAULT_CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "prkmk_jax" / "xla"
@@ -159,7 +168,7 @@ def _simulator(run: Run):
     process: executing an equal run again (another seed, or the module's
     tests before the command) reuses its compiled program. JAX's persistent
     cache cannot keep it (`DEFAULT_CACHE`)."""
-    method, field = method_of(run), scene_of(run)
+    method, field = method_of(run), run.scene
     simulate = jax.jit(lambda y0, inertia: integrate(method, field, y0, 0.0, run.h, run.num_steps, inertia, save_every=run.save_every))
     return method, field, simulate
 
@@ -189,7 +198,7 @@ def execute(run: Run, seed: int, symplecticity: bool = True, cache_dir: Path | N
     quarter = max(len(energy_error) // 4, 1)
     record = {
         "run": run.name,
-        "scene": run.scene,
+        "scene": run.scene_label,
         "representation": f"{type(run.bundle).__name__}({run.bundle.base.__name__})",
         "n": run.n,
         "coordinates": run.coordinates,
@@ -276,7 +285,7 @@ def main(argv=None) -> None:
     # The step map, hence its symplecticity defect, depends on (bundle,
     # coordinates, tableau, h, initial data) only: compute it once per key.
     def key(r):
-        return (r.scene, r.bundle, r.coordinates, r.tableau.name, r.h, r.n)
+        return (r.scene, r.coordinates, r.tableau.name, r.h, r.n)
 
     first_of_key = {}
     for r in runs:
