@@ -7,8 +7,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._util import as_array, bjorck_step, check_floating, checked_rotation, nearest_rotation, taylor_or_exact
-from .base import AbstractQuadraticGroup
+from ._util import as_array, check_floating, taylor_or_exact
+from .rotation import AbstractRotationGroup
 
 # Below this θ² the Taylor branches are used; the exact forms that cancel
 # (θ − sin θ)/θ³ and the dexp⁻¹ coefficient lose ~eps/θ² relative accuracy.
@@ -118,7 +118,7 @@ def _poly(x, coefficients):
     return acc
 
 
-class SO3(AbstractQuadraticGroup):
+class SO3(AbstractRotationGroup):
     """A rotation in SO(3)."""
 
     matrix: Float[Array, "*batch 3 3"] = eqx.field(converter=as_array)
@@ -184,30 +184,12 @@ class SO3(AbstractQuadraticGroup):
         )
         return factor[..., None] * v
 
-    def multiply(self, other: Self) -> Self:  # pyright: ignore[reportIncompatibleMethodOverride]  # pyright binds the base's Self in a parameter to the base class
-        return type(self)(self.matrix @ other.matrix)
-
-    def inverse(self) -> Self:
-        return type(self)(jnp.swapaxes(self.matrix, -1, -2))
-
-    def identity_like(self) -> Self:
-        return type(self)(jnp.broadcast_to(jnp.eye(3, dtype=self.matrix.dtype), self.matrix.shape))
-
     def adjoint(self, u: Vector3) -> Vector3:
         """Ad_R u = R u."""
         return jnp.einsum("...ij,...j->...i", self.matrix, u)
 
     def algebra_zeros(self) -> Vector3:
         return jnp.zeros(self.matrix.shape[:-1], self.matrix.dtype)
-
-    def check(self) -> Self:
-        return type(self)(checked_rotation(self.matrix, "SO3"))
-
-    def project(self) -> Self:
-        return type(self)(nearest_rotation(self.matrix))
-
-    def renormalized(self) -> Self:
-        return type(self)(bjorck_step(self.matrix))
 
     # --- algebra ---------------------------------------------------------------
     @classmethod

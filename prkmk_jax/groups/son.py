@@ -10,8 +10,8 @@ import jax.scipy.linalg as jsl
 from jaxtyping import Array, Float
 
 from ..series import dexp_inv_series
-from ._util import as_array, bjorck_step, check_floating, checked_rotation, nearest_rotation
-from .base import AbstractQuadraticGroup
+from ._util import as_array, check_floating
+from .rotation import AbstractRotationGroup
 
 EXACT_SERIES_TERMS = 40
 """Terms of the Bernoulli series used as the exact dexp⁻¹ on so(n) for small u.
@@ -207,7 +207,7 @@ def _log_jvp(primals, tangents):
     return u, SOn.dexp_inv(u, 0.5 * (right - _transpose(right)))
 
 
-class SOn(AbstractQuadraticGroup):
+class SOn(AbstractRotationGroup):
     """A rotation in SO(n); n is read off the matrix shape."""
 
     matrix: Float[Array, "*batch n n"] = eqx.field(converter=as_array)
@@ -261,29 +261,11 @@ class SOn(AbstractQuadraticGroup):
         """
         return _log(self.matrix)
 
-    def multiply(self, other: Self) -> Self:  # pyright: ignore[reportIncompatibleMethodOverride]  # pyright binds the base's Self in a parameter to the base class
-        return type(self)(self.matrix @ other.matrix)
-
-    def inverse(self) -> Self:
-        return type(self)(_transpose(self.matrix))
-
-    def identity_like(self) -> Self:
-        return type(self)(jnp.broadcast_to(_eye_like(self.matrix), self.matrix.shape))
-
     def adjoint(self, u: Skew) -> Skew:
         return self.matrix @ u @ _transpose(self.matrix)
 
     def algebra_zeros(self) -> Skew:
         return jnp.zeros_like(self.matrix)
-
-    def check(self) -> Self:
-        return type(self)(checked_rotation(self.matrix, "SOn"))
-
-    def project(self) -> Self:
-        return type(self)(nearest_rotation(self.matrix))
-
-    def renormalized(self) -> Self:
-        return type(self)(bjorck_step(self.matrix))
 
     @classmethod
     def bracket(cls, u: Skew, v: Skew) -> Skew:
