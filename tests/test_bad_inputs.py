@@ -109,6 +109,17 @@ STATIC = {
         ValueError,
         "lives on Cotangent",
     ),
+    "resume with a scene on another bundle": (
+        lambda: pk.resume(
+            TOP_ON_G_X_G_METHOD,
+            TOP,
+            pk.integrate(TOP_ON_G_X_G_METHOD, HeavyTop(pk.DirectProduct(pk.SO3)), GOOD, 0.0, 0.1, 2, TOP_ARGS).continuation,
+            2,
+            TOP_ARGS,
+        ),
+        ValueError,
+        "lives on Cotangent",
+    ),
     "scene in the other form": (lambda: _integrate(field=FREE_BODY, method=SPACE_FORM_METHOD), ValueError, "written in body form"),
     "scene in the other form, composed and jitted": (
         lambda: jax.jit(lambda y: _integrate(y, field=FREE_BODY, method=pk.Composition(SPACE_FORM_METHOD, pk.suzuki_5)))(GOOD),

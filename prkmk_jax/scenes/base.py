@@ -18,7 +18,7 @@ from jaxtyping import Array, Float, PyTree
 from ..bundles import AbstractBundle, AlgebraPair, BundleElement, Cotangent
 from ..compositions import CompositionCoefficients
 from ..coordinates import AbstractCoordinates, Exp
-from ..groups import SO3, SOn
+from ..groups import SO3, AbstractRotationGroup
 from ..method import AbstractFieldOnBundle, Time
 from ..splitting import Splitting
 from ..step import PRKMK
@@ -168,9 +168,9 @@ def checked_vector(owner: str, vector) -> Array:
 
 
 def rotation_matrix(element) -> Array:
-    """The matrix of an `SO3` or `SOn` element (any leading axes): the groups
+    """The matrix of a rotation (`SO3`, `SOn`; any leading axes): the groups
     the scenes live on."""
-    if not isinstance(element, (SO3, SOn)):
+    if not isinstance(element, AbstractRotationGroup):
         raise TypeError(f"this scene lives on rotation groups (SO3, SOn), got a {type(element).__name__} element.")
     return element.matrix
 
