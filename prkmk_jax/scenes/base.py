@@ -7,6 +7,7 @@ embedding ℝ⁹×ℝ³ for the solvers it is compared with.
 """
 
 import abc
+import functools
 from typing import ClassVar, Literal
 
 import equinox as eqx
@@ -76,7 +77,7 @@ class AbstractScene(AbstractFieldOnBundle):
         if times[-1] == t0:
             return np.repeat(z0[None], times.size, axis=0)
         cpu = jax.devices("cpu")[0]
-        field = jax.jit(self.embedding_field)
+        field = _compiled_embedding_field(self)
         args_on_cpu = jax.device_put(args, cpu)
 
         def rhs(t, z):
@@ -99,6 +100,13 @@ class AbstractScene(AbstractFieldOnBundle):
         coordinates = Exp() if coordinates is None else coordinates
         # Splitting checks the scene's type itself, with its own message.
         return Splitting(scene=self, coefficients=coefficients, coordinates=coordinates)  # pyright: ignore[reportCallIssue, reportArgumentType]  # equinox: AbstractVars implemented by properties are not __init__ fields
+
+
+@functools.cache
+def _compiled_embedding_field(scene: AbstractScene):
+    """`scene.embedding_field` jitted once per scene, so that every reference
+    solve of a scene reuses one compiled program."""
+    return jax.jit(scene.embedding_field)
 
 
 def checked_moments(owner: str, moments, allow_scalar: bool = False) -> Array:
