@@ -44,7 +44,8 @@ Tables:
   symplectic run.
 - `work_precision`, `long_time`, `heavy_top`, `throughput`, `stability`,
   `floor`, `against_scan`, `explicit_stages`, `root_finders`,
-  `against_revision`, `xla_codegen`: the script of the same name's results
+  `against_revision` (and `against_revision_recent`, the same script against
+  a recent revision), `xla_codegen`: the script of the same name's results
   file, as its function's docstring says.
 """
 
@@ -76,6 +77,7 @@ DOCUMENTS = {
         "explicit_stages",
         "root_finders",
         "against_revision",
+        "against_revision_recent",
         "xla_codegen",
     ),
     "docs/concepts/choosing.md": ("decision", "summary"),
@@ -565,6 +567,7 @@ OTHER_SOURCES = (
     "stage_layout.json",
     "against_revision_heavy_top.json",
     "against_revision.json",
+    "against_revision_recent.json",
     "round_off.json",
     "work_precision.json",
     "long_time.json",
@@ -598,6 +601,7 @@ TABLES = {
     "explicit_stages": explicit_stages_table,
     "root_finders": root_finders_table,
     "against_revision": functools.partial(revision_table, name="against_revision.json"),
+    "against_revision_recent": functools.partial(revision_table, name="against_revision_recent.json"),
     "xla_codegen": xla_codegen_table,
 }
 
