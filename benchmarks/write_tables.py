@@ -224,85 +224,6 @@ def results_file(name: str, root: Path | None = None) -> dict:
     return json.loads(((root or ROOT) / "benchmarks" / "results" / name).read_text())
 
 
-def stage_layout_table(_entries=None, root: Path | None = None) -> str:
-    """`stage_layout.py`'s results: ns per trajectory-step of an explicit
-    tableau's stages unrolled and in a loop."""
-    data = results_file("stage_layout.json", root)
-    device = device_name(data["machine"])
-    lines = [
-        "| scene | tableau | regime | device | unrolled, ns | loop, ns | loop / unrolled | compile unrolled, s | compile loop, s |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in data["rows"]:
-        ns, cs = r["ns_per_traj_step"], r["compile_s"]
-        lines.append(
-            f"| {r['scene']} | {r['tableau']} | {r['regime']} | {device} | {ns['unrolled']:.0f} | {ns['loop']:.0f} "
-            f"| {r['loop_over_unrolled']:.2f} | {cs['unrolled']:.2f} | {cs['loop']:.2f} |"
-        )
-    return "\n".join(lines)
-
-
-def revision_table(_entries=None, root: Path | None = None, name: str = "against_revision_heavy_top.json") -> str:
-    """`against_revision.py`'s results: ns per trajectory-step now and at
-    the earlier revision, interleaved."""
-    data = results_file(name, root)
-    device = device_name(data["machine"])
-    lines = [
-        _measured_on(data),
-        "",
-        f"| scene | tableau | coordinates | path | dtype | batch | device | now, ns | at {data['sha']}, ns | now / before "
-        "| largest difference |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in data["rows"]:
-        ns = r["ns_per_traj_step"]
-        lines.append(
-            f"| {r.get('scene', 'free body')} | {r['tableau']} | {r['coordinates']} | {r['path']} | {r['dtype']} | {r['batch']} "
-            f"| {device} | {ns['now']:.0f} | {ns['before']:.0f} | {r['now_over_before']:.2f} | {r['max_abs_difference']:.1e} |"
-        )
-    return "\n".join(lines)
-
-
-def round_off_table(_entries=None, root: Path | None = None) -> str:
-    """`round_off.py`'s results: how each invariant's error grows with the
-    number of steps (the largest error at the last step and the fitted
-    exponent), for the stages solved to round-off and stopped at the
-    tolerance, and Dopri8 at equal cost."""
-    data = results_file("round_off.json", root)
-    lines = [
-        "| method | scene | stages | dtype | trajectories | steps | largest error at the last step (growth exponent) |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for r in data["growth"]:
-        cells = ", ".join(f"{name} {r['errors'][name][-1]:.1e} ({r['exponent'][name]:.2f})" for name in r["errors"])
-        lines.append(f"| {r['method']} | {r['scene']} | {r['setting']} | {r['dtype']} | {r['batch']} | {r['steps']:.0e} | {cells} |")
-    d = data["dopri8"]
-    cells = ", ".join(f"{name} {d['errors'][name][-1]:.1e} ({d['exponent'][name]:.2f})" for name in d["errors"])
-    batch, horizon = data["growth"][0]["batch"], f"same time as SV's {d['steps_of_sv']:.0e}"
-    lines.append(f"| Dopri8 at SV's cost (h = {d['dt']:.3f}) | free body | explicit | float64 | {batch} | {horizon} | {cells} |")
-    return "\n".join(lines)
-
-
-def round_off_cost_table(_entries=None, root: Path | None = None) -> str:
-    """`round_off.py`'s cost rows: ns per trajectory-step and iterations a
-    step with the stages solved to round-off and stopped at the tolerance,
-    interleaved."""
-    data = results_file("round_off.json", root)
-    device = device_name(data["machine"])
-    lines = [
-        "| method | trajectories | device | round-off, ns | tolerance, ns | round-off / tolerance "
-        "| iterations a step, round-off | tolerance |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for r in data["cost"]:
-        ns, it = r["ns_per_traj_step"], r["iterations_per_step"]
-        lines.append(
-            f"| {r['method']} | {r['batch']} | {device} | {ns['round-off']:.0f} | {ns['tolerance']:.0f} "
-            f"| {r['round_off_over_tolerance']:.2f} | {it['round-off']:.1f} | {it['tolerance']:.1f} |"
-        )
-    return "\n".join(lines)
-
-
 def _table(headers: list[str], rows: list[list[str]]) -> str:
     lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
     lines += ["| " + " | ".join(row) + " |" for row in rows]
@@ -321,6 +242,99 @@ def _measured_on(data: dict) -> str:
     if isinstance(machine, str):  # against_scan.json keeps the platform string and the jax version apart
         return f"Measured on {data['devices'][0].split(':')[0].upper()}, jax {data['jax']}."
     return f"Measured on {device_name(machine)}, jax {machine['jax']}."
+
+
+def stage_layout_table(_entries=None, root: Path | None = None) -> str:
+    """`stage_layout.py`'s results: ns per trajectory-step of an explicit
+    tableau's stages unrolled and in a loop."""
+    data = results_file("stage_layout.json", root)
+    device = device_name(data["machine"])
+    rows = []
+    for r in data["rows"]:
+        ns, cs = r["ns_per_traj_step"], r["compile_s"]
+        rows.append(
+            [
+                r["scene"],
+                r["tableau"],
+                r["regime"],
+                device,
+                f"{ns['unrolled']:.0f}",
+                f"{ns['loop']:.0f}",
+                f"{r['loop_over_unrolled']:.2f}",
+                f"{cs['unrolled']:.2f}",
+                f"{cs['loop']:.2f}",
+            ]
+        )
+    headers = ["scene", "tableau", "regime", "device", "unrolled, ns", "loop, ns", "loop / unrolled", "compile unrolled, s"]
+    return _table([*headers, "compile loop, s"], rows)
+
+
+def revision_table(_entries=None, root: Path | None = None, name: str = "against_revision_heavy_top.json") -> str:
+    """`against_revision.py`'s results: ns per trajectory-step now and at
+    the earlier revision, interleaved."""
+    data = results_file(name, root)
+    device = device_name(data["machine"])
+    rows = [
+        [
+            r.get("scene", "free body"),
+            r["tableau"],
+            r["coordinates"],
+            r["path"],
+            r["dtype"],
+            str(r["batch"]),
+            device,
+            f"{r['ns_per_traj_step']['now']:.0f}",
+            f"{r['ns_per_traj_step']['before']:.0f}",
+            f"{r['now_over_before']:.2f}",
+            f"{r['max_abs_difference']:.1e}",
+        ]
+        for r in data["rows"]
+    ]
+    headers = ["scene", "tableau", "coordinates", "path", "dtype", "batch", "device", "now, ns", f"at {data['sha']}, ns"]
+    return _measured_on(data) + "\n\n" + _table([*headers, "now / before", "largest difference"], rows)
+
+
+def round_off_table(_entries=None, root: Path | None = None) -> str:
+    """`round_off.py`'s results: how each invariant's error grows with the
+    number of steps (the largest error at the last step and the fitted
+    exponent), for the stages solved to round-off and stopped at the
+    tolerance, and Dopri8 at equal cost."""
+    data = results_file("round_off.json", root)
+
+    def growth(run):
+        return ", ".join(f"{name} {run['errors'][name][-1]:.1e} ({run['exponent'][name]:.2f})" for name in run["errors"])
+
+    rows = [[r["method"], r["scene"], r["setting"], r["dtype"], str(r["batch"]), f"{r['steps']:.0e}", growth(r)] for r in data["growth"]]
+    d = data["dopri8"]
+    batch, horizon = data["growth"][0]["batch"], f"same time as SV's {d['steps_of_sv']:.0e}"
+    rows.append([f"Dopri8 at SV's cost (h = {d['dt']:.3f})", "free body", "explicit", "float64", str(batch), horizon, growth(d)])
+    headers = ["method", "scene", "stages", "dtype", "trajectories", "steps", "largest error at the last step (growth exponent)"]
+    return _table(headers, rows)
+
+
+def round_off_cost_table(_entries=None, root: Path | None = None) -> str:
+    """`round_off.py`'s cost rows: ns per trajectory-step and iterations a
+    step with the stages solved to round-off and stopped at the tolerance,
+    interleaved."""
+    data = results_file("round_off.json", root)
+    device = device_name(data["machine"])
+    rows = []
+    for r in data["cost"]:
+        ns, it = r["ns_per_traj_step"], r["iterations_per_step"]
+        rows.append(
+            [
+                r["method"],
+                str(r["batch"]),
+                device,
+                f"{ns['round-off']:.0f}",
+                f"{ns['tolerance']:.0f}",
+                f"{r['round_off_over_tolerance']:.2f}",
+                f"{it['round-off']:.1f}",
+                f"{it['tolerance']:.1f}",
+            ]
+        )
+    headers = ["method", "trajectories", "device", "round-off, ns", "tolerance, ns", "round-off / tolerance"]
+    return _table([*headers, "iterations a step, round-off", "tolerance"], rows)
 
 
 def work_precision_table(_entries=None, root: Path | None = None) -> str:
