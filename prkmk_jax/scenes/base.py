@@ -109,15 +109,20 @@ def _compiled_embedding_field(scene: AbstractScene):
     return jax.jit(scene.embedding_field)
 
 
+def _floating_array(value) -> Array:
+    """`value` as an array, integers converted to floats (a parameter given
+    as `[1, 2, 3]` is meant as moments, not as integer data)."""
+    value = jnp.asarray(value)
+    return value if jnp.issubdtype(value.dtype, jnp.floating) else value.astype(float)
+
+
 def checked_moments(owner: str, moments, allow_scalar: bool = False) -> Array:
     """`moments` as an array of principal moments of inertia, shape (…, 3)
     (or () where `allow_scalar`): a wrong shape is a `ValueError` naming
     `owner`; a moment that is not > 0 (a negative, zero or NaN moment: the
     inertia is not positive definite) raises where the data is known, eagerly
     or at run time under `jax.jit` (`eqx.error_if`)."""
-    moments = jnp.asarray(moments)
-    if not jnp.issubdtype(moments.dtype, jnp.floating):
-        moments = moments.astype(float)
+    moments = _floating_array(moments)
     shape = moments.shape
     if not ((allow_scalar and shape == ()) or (len(shape) >= 1 and shape[-1] == 3)):
         allowed = "() or (…, 3)" if allow_scalar else "(…, 3)"
@@ -130,9 +135,7 @@ def checked_moments(owner: str, moments, allow_scalar: bool = False) -> Array:
 def checked_inertia_tensor(owner: str, tensor) -> Array:
     """A body-frame inertia tensor (3, 3): symmetric and positive definite,
     checked where the data is known (`eqx.error_if`), as `checked_moments`."""
-    tensor = jnp.asarray(tensor)
-    if not jnp.issubdtype(tensor.dtype, jnp.floating):
-        tensor = tensor.astype(float)
+    tensor = _floating_array(tensor)
     if tensor.shape != (3, 3):
         raise ValueError(f"{owner}: an inertia tensor must have shape (3, 3), got {tensor.shape}.")
     scale = jnp.max(jnp.abs(tensor))
@@ -146,9 +149,7 @@ def checked_pair_masses(owner: str, masses) -> Array:
     """The masses J (…, n) of the symmetric body on SO(n) (M = JΩ + ΩJ): the
     inertia Ω ↦ JΩ + ΩJ is positive definite where every Jᵢ + Jⱼ (i ≠ j) is
     > 0, checked where the data is known (`eqx.error_if`)."""
-    masses = jnp.asarray(masses)
-    if not jnp.issubdtype(masses.dtype, jnp.floating):
-        masses = masses.astype(float)
+    masses = _floating_array(masses)
     if masses.ndim < 1 or masses.shape[-1] < 2:
         raise ValueError(f"{owner}: the masses J must have shape (…, n) with n ≥ 2, got {masses.shape}.")
     n = masses.shape[-1]
