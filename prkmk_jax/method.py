@@ -126,8 +126,9 @@ class AbstractMethod(eqx.Module):
 
     @abc.abstractmethod
     def initial_carried(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None) -> Any:
-        """What a step from (t, y) starts from when no step came before it
-        (`Step.carried` of a step that ended at (t, y))."""
+        """What a step from (t, y) starts from when no step came before it:
+        what `Step.carried` holds, with the field at (t, y) in place of a
+        previous step's (for implicit stages, as every stage slope)."""
 
     @abc.abstractmethod
     def carried_step(self, vector_field: VectorField, t: Time, y: BundleElement, dt: Time, args: PyTree, carried: Any) -> Step:
