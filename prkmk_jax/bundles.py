@@ -13,36 +13,27 @@ algebra elements are pairs `(x, y)` of base-algebra arrays.
 | `Cartesian(G)`        | G × G               | (a₁b₁, a₂b₂)               Table 2.3 |
 
 Algebra conventions are those of `groups.base`: brackets are commutators in
-a faithful matrix representation and every df⁻¹ is right-trivialised,
-df_U(V) = d/dt f(U + tV)·f(U)⁻¹. For the semidirect product that
-representation is a + ε a u (left) or a + ε u a (right) over dual numbers
-ε² = 0; in both the algebra element (x, y) is x + εy, which gives the bracket
-of Table 2.2 and the following exact forms, obtained by expanding an analytic
-function Φ(U, X) of the dual-number matrices:
+a faithful matrix representation and every differential is right-trivialised.
 
-    Φ(u + εv, x + εy) = Φ(u, x) + ε (Φ(u, y) + D_uΦ(u, x)[v]).
-
-Applied to Φ = dexp⁻¹ this is `_dual_lift` below (the exact semidirect dexp⁻¹).
-
-The semidirect Cayley map is the one of §4.4, the Cayley transform for the
-algebra product (u, v)·(x, y) = (ux, −ad_x v) of (4.16):
-cay(u, v) = (cay(u), (I ± ½ad_u)⁻¹ v) (+ left, − right trivialisation). It is
-not the Cayley transform of the dual-number representation (the two differ at
-second order in U); both are valid coordinates. Its inverse differential is
-derived in `AbstractSemidirect.dcayley_inv`. The bracket-only formula printed
-in §4.4, (dcay⁻¹_u x, y − ½([u,y] + [v,x]) − ¼[u,[x,v]]), agrees with it on
-so(3) but not on so(n), n ≥ 4 (see `paper_semidirect_dcayley_inv`).
+A bundle lifts any coordinate map of its base group to itself
+(`lifted_map`, `lifted_inverse_map`, `lifted_inverse_differential`,
+`lifted_multiply`): the map says what it is on G (`coordinates.base`), the
+bundle how its elements are built from that. So a coordinate map is written
+once for every bundle, and a bundle once for every map.
 """
 
 import abc
-from typing import ClassVar, Literal, cast
+from typing import TYPE_CHECKING, ClassVar, Literal, cast
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
-from .groups.base import AbstractLieGroup, AbstractQuadraticGroup
+from .groups.base import AbstractLieGroup
+
+if TYPE_CHECKING:
+    from .coordinates import AbstractCoordinates
 
 Algebra = Float[Array, "..."]
 """An element of g or g* of the base group: any leading batch axes, then
@@ -50,8 +41,8 @@ Algebra = Float[Array, "..."]
 AlgebraPair = tuple[Algebra, Algebra]
 """(u, v) ∈ 𝔤 of a bundle group: the base's part and the fiber's."""
 Increment = tuple[Algebra, Algebra | None]
-"""(u, v) as `exp_multiply` and `cayley_multiply` take it: v None is a zero
-known at trace time, whose arithmetic the product skips."""
+"""(u, v) as `lifted_multiply` takes it: v None is a zero known at trace
+time, whose arithmetic the product skips."""
 
 
 class BundleElement(eqx.Module):
@@ -69,13 +60,6 @@ def _multiply_in_form(bundle, increment, y, form):
     return bundle.multiply(y, increment) if form == "body" else bundle.multiply(increment, y)
 
 
-def _dual_lift(fn, u, v, x, y):
-    """ε-expansion of Φ(u + εv, x + εy) for Φ = fn (see module docstring)."""
-    first = fn(u, x)
-    _, d_first = jax.jvp(lambda uu: fn(uu, x), (u,), (v,))
-    return first, fn(u, y) + d_first
-
-
 def _is_group_class(base) -> bool:
     return isinstance(base, type) and issubclass(base, AbstractLieGroup)
 
@@ -90,18 +74,6 @@ class AbstractBundle(eqx.Module):
     def __check_init__(self):
         if not _is_group_class(self.base):
             raise TypeError(f"{type(self).__name__} needs a base group class such as SO3, got {self.base!r}.")
-
-    @property
-    def supports_cayley(self) -> bool:
-        return issubclass(self.base, AbstractQuadraticGroup)
-
-    @property
-    def quadratic_base(self) -> type[AbstractQuadraticGroup]:
-        """`base`, for the Cayley maps, which exist on quadratic groups only."""
-        base = self.base
-        if not issubclass(base, AbstractQuadraticGroup):
-            raise TypeError(f"Cayley coordinates need a quadratic base group; {base.__name__} is not an AbstractQuadraticGroup.")
-        return base
 
     # --- element validation ----------------------------------------------------
     def check(self, y: BundleElement) -> BundleElement:
@@ -151,7 +123,7 @@ class AbstractBundle(eqx.Module):
 
     def zero_filled(self, U: Increment, y: BundleElement) -> AlgebraPair:
         """U with a fiber component None (a zero known at trace time, see
-        `exp_multiply`) replaced by the zeros of the algebra at y."""
+        `lifted_multiply`) replaced by the zeros of the algebra at y."""
         u, v = U
         return u, self.algebra_zeros(y)[1] if v is None else v
 
@@ -172,46 +144,33 @@ class AbstractBundle(eqx.Module):
     def bracket(self, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
         """The bracket of the bundle algebra."""
 
+    # --- a coordinate map of the base, lifted (`coordinates.base`) ---------------------
     @abc.abstractmethod
-    def exp(self, U: AlgebraPair) -> BundleElement:
-        """The exponential map of the bundle."""
+    def lifted_map(self, coordinates: "AbstractCoordinates", U: AlgebraPair) -> BundleElement:
+        """f(U) for the coordinate map f of the bundle built on `coordinates`."""
 
     @abc.abstractmethod
-    def log(self, a: BundleElement) -> AlgebraPair:
-        """Inverse of `exp` near the identity."""
+    def lifted_inverse_map(self, coordinates: "AbstractCoordinates", a: BundleElement) -> AlgebraPair:
+        """f⁻¹(a): the U near 0 with f(U) = a."""
 
     @abc.abstractmethod
-    def dexp_inv(self, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
-        """Exact dexp⁻¹_U(X) (from the base group's closed form)."""
+    def lifted_inverse_differential(self, coordinates: "AbstractCoordinates", U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
+        """Exact df⁻¹_U(X)."""
 
     @abc.abstractmethod
-    def cayley(self, U: AlgebraPair) -> BundleElement:
-        """The Cayley map of the bundle (§4.4)."""
-
-    @abc.abstractmethod
-    def cayley_inverse(self, a: BundleElement) -> AlgebraPair:
-        """The U with cay(U) = a (the inverse of `cayley`, as `log` is of `exp`)."""
-
-    @abc.abstractmethod
-    def dcayley_inv(self, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
-        """Exact dcay⁻¹_U(X)."""
-
-    # --- the update of a PRKMK step ------------------------------------------------
-    @abc.abstractmethod
-    def exp_multiply(self, U: Increment, y: BundleElement, form: Literal["space", "body"]) -> BundleElement:
-        """y·exp(U) (`form="body"`) or exp(U)·y (`"space"`), without forming
-        exp(U) where the product only needs its action.
+    def lifted_multiply(
+        self, coordinates: "AbstractCoordinates", U: Increment, y: BundleElement, form: Literal["space", "body"]
+    ) -> BundleElement:
+        """y·f(U) (`form="body"`) or f(U)·y (`"space"`), without forming f(U)
+        where the product only needs its action.
 
         U = (u, v), and v may be None: a zero known at trace time (a PRKMK
         stage that no L enters, as for a field with η ≡ 0). The product then
-        skips the fiber part of exp(u, 0), which is zero but would cost its
-        arithmetic: XLA does not fold 0·x for floats. On G ⋉ g that part is
-        dexp_{∓u}(v); skipping it makes the free body's step on T*SO(3)
-        quicker (`benchmarks/against_revision.py` measures it)."""
-
-    @abc.abstractmethod
-    def cayley_multiply(self, U: Increment, y: BundleElement, form: Literal["space", "body"]) -> BundleElement:
-        """y·cay(U) or cay(U)·y, as `exp_multiply`."""
+        skips the fiber part of f(u, 0), which is zero but would cost its
+        arithmetic: XLA does not fold 0·x for floats. On G ⋉ 𝔤 that part is
+        ψ_s v (`AbstractCoordinates.fiber_map`); skipping it makes the free
+        body's step on T*SO(3) quicker (`benchmarks/against_revision.py`
+        measures it)."""
 
 
 class DirectProduct(AbstractBundle):
@@ -229,29 +188,17 @@ class DirectProduct(AbstractBundle):
     def bracket(self, U, X):
         return self.base.bracket(U[0], X[0]), jnp.zeros_like(X[1])
 
-    def exp(self, U):
-        return BundleElement(self.base.exp(U[0]), U[1])
+    def lifted_map(self, coordinates, U):
+        return BundleElement(coordinates.group_map(self.base, U[0]), U[1])
 
-    def log(self, a):
-        return a.base.log(), a.fiber
+    def lifted_inverse_map(self, coordinates, a):
+        return coordinates.group_inverse_map(a.base), a.fiber
 
-    def dexp_inv(self, U, X):
-        return self.base.dexp_inv(U[0], X[0]), X[1]
+    def lifted_inverse_differential(self, coordinates, U, X):
+        return coordinates.group_inverse_differential(self.base, U[0], X[0]), X[1]
 
-    def cayley(self, U):
-        return BundleElement(self.quadratic_base.cayley(U[0]), U[1])
-
-    def cayley_inverse(self, a):
-        return _quadratic(a.base).cayley_inverse(), a.fiber
-
-    def dcayley_inv(self, U, X):
-        return self.quadratic_base.dcayley_inv(U[0], X[0]), X[1]
-
-    def exp_multiply(self, U, y, form):
-        return _multiply_in_form(self, self.exp(self.zero_filled(U, y)), y, form)
-
-    def cayley_multiply(self, U, y, form):
-        return _multiply_in_form(self, self.cayley(self.zero_filled(U, y)), y, form)
+    def lifted_multiply(self, coordinates, U, y, form):
+        return _multiply_in_form(self, self.lifted_map(coordinates, self.zero_filled(U, y)), y, form)
 
 
 class Cartesian(AbstractBundle):
@@ -269,37 +216,26 @@ class Cartesian(AbstractBundle):
     def bracket(self, U, X):
         return self.base.bracket(U[0], X[0]), self.base.bracket(U[1], X[1])
 
-    def exp(self, U):
-        return BundleElement(self.base.exp(U[0]), self.base.exp(U[1]))
+    def lifted_map(self, coordinates, U):
+        return BundleElement(coordinates.group_map(self.base, U[0]), coordinates.group_map(self.base, U[1]))
 
-    def log(self, a):
-        return a.base.log(), a.fiber.log()
+    def lifted_inverse_map(self, coordinates, a):
+        return coordinates.group_inverse_map(a.base), coordinates.group_inverse_map(a.fiber)
 
-    def dexp_inv(self, U, X):
-        return self.base.dexp_inv(U[0], X[0]), self.base.dexp_inv(U[1], X[1])
+    def lifted_inverse_differential(self, coordinates, U, X):
+        return coordinates.group_inverse_differential(self.base, U[0], X[0]), coordinates.group_inverse_differential(self.base, U[1], X[1])
 
-    def cayley(self, U):
-        return BundleElement(self.quadratic_base.cayley(U[0]), self.quadratic_base.cayley(U[1]))
-
-    def cayley_inverse(self, a):
-        return _quadratic(a.base).cayley_inverse(), _quadratic(a.fiber).cayley_inverse()
-
-    def dcayley_inv(self, U, X):
-        return self.quadratic_base.dcayley_inv(U[0], X[0]), self.quadratic_base.dcayley_inv(U[1], X[1])
-
-    def exp_multiply(self, U, y, form):
-        return _multiply_in_form(self, self.exp(self.zero_filled(U, y)), y, form)
-
-    def cayley_multiply(self, U, y, form):
-        return _multiply_in_form(self, self.cayley(self.zero_filled(U, y)), y, form)
+    def lifted_multiply(self, coordinates, U, y, form):
+        return _multiply_in_form(self, self.lifted_map(coordinates, self.zero_filled(U, y)), y, form)
 
 
 class AbstractSemidirect(AbstractBundle):
     """G ⋉ g with the lifted product (2.4) in left or right trivialisation.
 
-    exp(u, v) = (exp(u), dexp_{∓u}(v)): the trivialised differential of the
-    base exp, left (−u) or right (+u) as the trivialisation (Table 2.2, §4.4).
-    Cayley: the §4.4 forms (module docstring).
+    A coordinate map lifts as f(u, v) = (φ(u), ψ_s v), s = −u (left) or u
+    (right), with φ and ψ the map's (`coordinates.base`): for the exponential
+    exp(u, v) = (exp(u), dexp_s v), the trivialised differential of the base
+    exp (Table 2.2); for Cayley the §4.4 form (`coordinates.cayley`).
     """
 
     trivialization: eqx.AbstractVar[Literal["left", "right"]]
@@ -327,71 +263,36 @@ class AbstractSemidirect(AbstractBundle):
         br = self.base.bracket
         return br(u, x), br(u, y) - br(x, v)
 
-    def exp(self, U):
+    def lifted_map(self, coordinates, U):
         u, v = U
-        return BundleElement(self.base.exp(u), self.base.dexp(self._sign() * u, v))
+        return BundleElement(coordinates.group_map(self.base, u), coordinates.fiber_map(self.base, self._sign() * u, v))
 
-    def log(self, a):
-        u = a.base.log()
-        return u, self.base.dexp_inv(self._sign() * u, a.fiber)
+    def lifted_inverse_map(self, coordinates, a):
+        u = coordinates.group_inverse_map(a.base)
+        return u, coordinates.fiber_map_inverse(self.base, self._sign() * u, a.fiber)
 
-    def dexp_inv(self, U, X):
-        return _dual_lift(self.base.dexp_inv, U[0], U[1], X[0], X[1])
+    def lifted_inverse_differential(self, coordinates, U, X):
+        return coordinates.semidirect_inverse_differential(self, U, X)
 
-    def _cayley_fiber(self, u, v):
-        # (cay(−ad_u) − I)/(−ad_u) = (I + ½ad_u)⁻¹ (left); (I − ½ad_u)⁻¹ (right).
-        return self.base.inverse_shifted_ad(u, v, -0.5 * self._sign())
-
-    def cayley(self, U):
-        u, v = U
-        return BundleElement(self.quadratic_base.cayley(u), self._cayley_fiber(u, v))
-
-    def cayley_inverse(self, a):
-        # The fiber of cay(u, v) is (I + α ad_u)⁻¹ v with α = ±½ (`_cayley_fiber`).
-        u = _quadratic(a.base).cayley_inverse()
-        return u, a.fiber - 0.5 * self._sign() * self.base.bracket(u, a.fiber)
-
-    def dcayley_inv(self, U, X):
-        # Differentiate cay(U + tV)·cay(U)⁻¹ with w = fiber of cay(U) and
-        # x_V = dcay⁻¹_u(x); solving the fiber part for y_V gives
-        #   left:  y_V = (I + ½ad_u) Ad_{cay(u)⁻¹} y + ½[x_V, w]
-        #   right: y_V = (I − ½ad_u)(y + [x, w]) − ½[x_V, w].
-        (u, v), (x, y) = U, X
-        br = self.base.bracket
-        w = self._cayley_fiber(u, v)
-        x_v = self.quadratic_base.dcayley_inv(u, x)
-        if self.trivialization == "left":
-            z = self.quadratic_base.cayley_adjoint(-u, y)  # Ad_{cay(−u)} = Ad_{cay(u)⁻¹}, without forming the matrix
-            y_v = z + 0.5 * br(u, z) + 0.5 * br(x_v, w)
-        else:
-            z = y + br(x, w)
-            y_v = z - 0.5 * br(u, z) - 0.5 * br(x_v, w)
-        return x_v, y_v
-
-    def exp_multiply(self, U, y, form):
+    def lifted_multiply(self, coordinates, U, y, form):
         u, v = U
         base = self.base
-        fiber_part = None if v is None else base.dexp(self._sign() * u, v)
-        return self._multiply_increment(y, base.exp(u), fiber_part, lambda x, sign: base.exp_adjoint(sign * u, x), form)
-
-    def cayley_multiply(self, U, y, form):
-        u, v = U
-        base = self.quadratic_base
-        fiber_part = None if v is None else self._cayley_fiber(u, v)
-        return self._multiply_increment(y, base.cayley(u), fiber_part, lambda x, sign: base.cayley_adjoint(sign * u, x), form)
+        fiber_part = None if v is None else coordinates.fiber_map(base, self._sign() * u, v)
+        g = coordinates.group_map(base, u)
+        return self._multiply_increment(y, g, fiber_part, lambda x, inverse: coordinates.group_adjoint(base, u, x, inverse), form)
 
     def _multiply_increment(self, y, g, w, act, form):
         """The product (multiply) of y with the increment (g, w), where g is
-        exp(u) or cay(u) and act(x, ±1) = Ad_{g^{±1}} x is computed without g
+        φ(u) and act(x, inverse) = Ad_{g} x or Ad_{g⁻¹} x is computed without g
         (g itself only enters the base, which XLA drops when unused)."""
         left = self.trivialization == "left"
         if form == "body":  # y·(g, w)
-            fiber = act(y.fiber, -1.0) if left else y.fiber
-            if w is not None:  # None: w = 0 (`exp_multiply`)
+            fiber = act(y.fiber, True) if left else y.fiber
+            if w is not None:  # None: w = 0 (`lifted_multiply`)
                 fiber = fiber + (w if left else y.base.adjoint(w))
             return BundleElement(y.base.multiply(g), fiber)
         # (g, w)·y
-        fiber = y.fiber if left else act(y.fiber, 1.0)
+        fiber = y.fiber if left else act(y.fiber, False)
         if w is not None:
             fiber = fiber + (y.base.inverse().adjoint(w) if left else w)
         return BundleElement(g.multiply(y.base), fiber)
@@ -428,22 +329,3 @@ class Cotangent(AbstractSemidirect):
                 f"Cotangent({self.base.__name__}) needs a base group whose algebra has a bi-invariant pairing "
                 "(g* ≅ g with Ad* = Ad⁻¹); this one does not declare it."
             )
-
-
-def _quadratic(element: AbstractLieGroup) -> AbstractQuadraticGroup:
-    """`element`, for the inverse Cayley map (quadratic groups only)."""
-    if not isinstance(element, AbstractQuadraticGroup):
-        raise TypeError(f"the inverse Cayley map needs an element of a quadratic group, got {type(element).__name__}.")
-    return element
-
-
-def paper_semidirect_dcayley_inv(bundle: AbstractSemidirect, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
-    """The §4.4 formula as printed: (dcay⁻¹_u x, y − ½([u,y] + [v,x]) − ¼[u,[x,v]]).
-
-    Kept for comparison only: it is the inverse differential of the §4.4
-    Cayley map on so(3) (both trivialisations), but not on so(n) for n ≥ 4,
-    where the derivation through the product (4.16) does not hold.
-    """
-    (u, v), (x, y) = U, X
-    br = bundle.base.bracket
-    return bundle.quadratic_base.dcayley_inv(u, x), y - 0.5 * (br(u, y) + br(v, x)) - 0.25 * br(u, br(x, v))

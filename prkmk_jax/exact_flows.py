@@ -34,9 +34,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
 from .bundles import BundleElement
-from .coordinates import AbstractCoordinates, Cayley
+from .coordinates import AbstractCoordinates
 from .groups.so3 import SO3
-from .groups.trig import sincos
 from .method import AbstractFieldOnBundle
 
 VECTORISED_BATCH = 16
@@ -59,15 +58,9 @@ def is_vectorised(batch_shape: tuple[int, ...]) -> bool:
 
 def rotation_sine_cosine(coordinates: AbstractCoordinates, angle: Array) -> tuple[Array, Array]:
     """(sin, cos) of the planar rotation that the coordinate map gives the
-    algebra element `angle`·eᵢ: the exponential turns by `angle`, the Cayley
-    map by 2·atan(angle/2), i.e. cos = (1 − a²/4)/(1 + a²/4), sin = a/(1 + a²/4)."""
-    if isinstance(coordinates, Cayley):
-        quarter = 0.25 * angle * angle
-        scale = 1.0 / (1.0 + quarter)
-        return angle * scale, (1.0 - quarter) * scale
-    if is_vectorised(jnp.shape(angle)):
-        return sincos(angle)
-    return jnp.sin(angle), jnp.cos(angle)
+    algebra element `angle`·eᵢ (`AbstractCoordinates.planar_rotation`): the
+    exponential turns by `angle`, the Cayley map by 2·atan(angle/2)."""
+    return coordinates.planar_rotation(angle, vectorised=is_vectorised(jnp.shape(angle)))
 
 
 def rotated_rows(z: Packed, pairs: tuple[tuple[int, int], ...], sine: Array, cosine: Array) -> Packed:

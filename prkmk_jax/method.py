@@ -150,7 +150,7 @@ class AbstractMethod(eqx.Module):
     def apply_increment(self, U: Increment, y: BundleElement) -> BundleElement:
         """f(U)·y (space form) or y·f(U) (body form), f the coordinate map.
         U's fiber component may be None, a zero known at trace time
-        (`AbstractBundle.exp_multiply`)."""
+        (`AbstractBundle.lifted_multiply`)."""
         return self.coordinates.apply(self.bundle, U, y, self.form)
 
     def advance(self, U: Increment, y: BundleElement) -> BundleElement:

@@ -35,7 +35,7 @@ from jaxtyping import PyTree
 
 from .bundles import BundleElement
 from .compositions import CompositionCoefficients
-from .coordinates import AbstractCoordinates, Cayley, Exp
+from .coordinates import AbstractCoordinates, Exp
 from .exact_flows import AbstractSplitScene, is_vectorised, renormalized_rotations
 from .method import LOW_PRECISION_EPS, RESULTS, AbstractMethod, Step, Time, VectorField, flag_nonfinite
 
@@ -72,8 +72,10 @@ class Splitting(AbstractMethod):
     - `coefficients`: `None` for the Strang splitting (order 2), or a
       symmetric composition of it (`suzuki_5`, `kahan_li_6`, `kahan_li_8`,
       …; order `coefficients.order`). The composed step is unrolled, and
-      with `Exp()` adjacent flows of the outermost part are merged.
-    - `coordinates`: `Exp()` (exact flows, default) or `Cayley()`.
+      with a map that sends lines to subgroups (`Exp()`) adjacent flows of
+      the outermost part are merged.
+    - `coordinates`: `Exp()` (exact flows, default), `Cayley()` or any
+      `AbstractCoordinates` (each rotation turned as its `planar_rotation` says).
 
     The method integrates `scene` only: `integrate`, `resume` and
     `PRKMKSolver` refuse another vector field. For batches, give the
@@ -103,8 +105,8 @@ class Splitting(AbstractMethod):
                     f"{self.coefficients.name} raises a symmetric base of order {self.coefficients.base_order}; "
                     "the Strang splitting has order 2 (use e.g. triple_jump(2), suzuki_5, kahan_li_6, kahan_li_8)."
                 )
-        if not isinstance(self.coordinates, (Exp, Cayley)):
-            raise TypeError(f"coordinates must be Exp() or Cayley(), got {self.coordinates!r}.")
+        if not isinstance(self.coordinates, AbstractCoordinates):
+            raise TypeError(f"coordinates must be an AbstractCoordinates such as Exp() or Cayley(), got {self.coordinates!r}.")
         self.coordinates.check_bundle(self.scene.bundle)
 
     @property
@@ -145,7 +147,7 @@ class Splitting(AbstractMethod):
         flows = self.scene.exact_flows(args)
         fractions = (1.0,) if self.coefficients is None else self.coefficients.fractions
         z = self.scene.pack(y, args)
-        for part, start, step in sub_steps(len(flows), fractions, merge=isinstance(self.coordinates, Exp)):
+        for part, start, step in sub_steps(len(flows), fractions, merge=self.coordinates.maps_lines_to_subgroups):
             z = flows[part].flow(self.coordinates, t + start * dt, z, step * dt, args)
             if is_vectorised(z.shape[1:]) or flows[part].always_materialised:
                 # Each sub-step's state is computed once: XLA would otherwise

@@ -117,7 +117,7 @@ class PRKMK(AbstractMethod):
         if not isinstance(self.bundle, AbstractBundle):
             raise TypeError(f"bundle must be a bundle group such as Cartesian(SO3), got {self.bundle!r}.")
         if not isinstance(self.coordinates, AbstractCoordinates):
-            raise TypeError(f"coordinates must be Exp() or Cayley(), got {self.coordinates!r}.")
+            raise TypeError(f"coordinates must be an AbstractCoordinates such as Exp() or Cayley(), got {self.coordinates!r}.")
         if not isinstance(self.tableau, PartitionedTableau):
             raise TypeError(f"tableau must be a PartitionedTableau, got {type(self.tableau).__name__}.")
         if self.form not in ("space", "body"):

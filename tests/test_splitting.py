@@ -100,7 +100,7 @@ def test_each_part_is_an_exact_flow(name):
 @pytest.mark.parametrize("coordinates", [pk.Exp(), pk.Cayley()], ids=["exp", "cayley"])
 def test_an_axis_rotation_is_the_bundle_group_action(coordinates):
     """On T*SO(3) the i-th axis flow is y·f(h(ωᵢeᵢ, 0)) with the bundle's own
-    exp or Cayley map (`Cotangent.exp_multiply`, `cayley_multiply`). The
+    exp or Cayley map (`AbstractCoordinates.apply`). The
     parts turn about the body axes by increasing inertia."""
     y0 = _state(3, [0.4, -1.1, 0.8])
     h = jnp.asarray(0.9)

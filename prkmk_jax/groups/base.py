@@ -106,11 +106,6 @@ class AbstractLieGroup(eqx.Module):
         form act on x directly, without forming exp(u) (Rodrigues on SO(3)):
         the fiber update of a PRKMK step on G⋉g is this action."""
 
-    @classmethod
-    @abc.abstractmethod
-    def inverse_shifted_ad(cls, u: Array, v: Array, alpha: float) -> Array:
-        """(I + α ad_u)⁻¹ v, the fiber factor of the semidirect Cayley map (§4.4)."""
-
     def __matmul__(self, other: Self) -> Self:
         return self.multiply(other)
 
@@ -145,3 +140,8 @@ class AbstractQuadraticGroup(AbstractLieGroup):
     @abc.abstractmethod
     def cayley_adjoint(cls, u: Array, x: Array) -> Array:
         """Ad_{cay(u)} x, the same as `cayley(u).adjoint(x)` (see `exp_adjoint`)."""
+
+    @classmethod
+    @abc.abstractmethod
+    def inverse_shifted_ad(cls, u: Array, v: Array, alpha: float) -> Array:
+        """(I + α ad_u)⁻¹ v, the fiber factor of the semidirect Cayley map (§4.4)."""

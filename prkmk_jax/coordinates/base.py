@@ -1,0 +1,164 @@
+"""Coordinate maps f: 𝔤 → TG of the bundle group (paper §4.2, §4.4).
+
+A coordinate map is given on the base group G, and each bundle lifts it
+(`AbstractBundle.lifted_map` and its siblings): componentwise on G × 𝔤 and
+G × G, and on G ⋉ 𝔤 as
+
+    f(u, v) = (φ(u), ψ_s v),   s = −u (left trivialisation) or u (right),
+
+with φ the map on G and ψ_s a linear map of the fiber that the map chooses
+(`fiber_map`). A map therefore implements only what it is on G (the
+`group_*` methods, `fiber_map` and the inverse differential on G ⋉ 𝔤), and
+every bundle, present or future, uses it: adding a map is one new module.
+
+Differentials are right-trivialised, df_U(V) = d/dt f(U + tV)·f(U)⁻¹, and
+`inverse_differential(bundle, U, X, method_order)` returns df⁻¹_U(X), the
+right-hand side of the algebra equation U' = df⁻¹_U(ξ, η) of Algorithm 4.2.
+"""
+
+import abc
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Literal
+
+import equinox as eqx
+import jax
+from jaxtyping import Array
+
+from ..bundles import AbstractBundle, AlgebraPair, BundleElement, Increment
+from ..groups.base import AbstractLieGroup
+
+if TYPE_CHECKING:
+    from ..bundles import AbstractSemidirect
+
+Truncation = int | None | Literal["auto"]
+MAX_SERIES_TRUNCATION = 30
+"""The largest truncation accepted: the series is unrolled at trace time, and
+beyond a few powers the exact form (`truncation=None`) is cheaper."""
+
+
+class AbstractCoordinates(eqx.Module):
+    """A coordinate map on the bundle group and its inverse differential.
+
+    What a map implements is what it is on the base group G (the abstract
+    methods); `map`, `inverse_map`, `apply` and `exact_inverse_differential`
+    lift it to any bundle and are the same for every map.
+    """
+
+    truncation: eqx.AbstractVar[Truncation]
+    maps_lines_to_subgroups: eqx.AbstractClassVar[bool]
+    """True where f(s·U)·f(t·U) = f((s + t)·U): f maps each line through 0 to a
+    one-parameter subgroup (the exponential does, the Cayley map does not).
+    Consecutive sub-flows along one direction may then be merged."""
+
+    # --- what a map is on the base group G ---------------------------------------------
+    @abc.abstractmethod
+    def check_group(self, group: type[AbstractLieGroup]) -> None:
+        """Raise `TypeError` if the map does not exist on `group`."""
+
+    @abc.abstractmethod
+    def resolve_truncation(self, method_order: int) -> int | None:
+        """The truncation used with a method of this order (None = exact)."""
+
+    @abc.abstractmethod
+    def group_map(self, group: type[AbstractLieGroup], u: Array) -> AbstractLieGroup:
+        """φ(u) ∈ G."""
+
+    @abc.abstractmethod
+    def group_inverse_map(self, g: AbstractLieGroup) -> Array:
+        """φ⁻¹(g): the u near 0 with φ(u) = g."""
+
+    @abc.abstractmethod
+    def group_inverse_differential(self, group: type[AbstractLieGroup], u: Array, x: Array) -> Array:
+        """dφ⁻¹_u(x), exact (right-trivialised)."""
+
+    @abc.abstractmethod
+    def group_adjoint(self, group: type[AbstractLieGroup], u: Array, x: Array, inverse: bool) -> Array:
+        """Ad_{φ(u)} x, or Ad_{φ(u)⁻¹} x if `inverse`, computed without forming
+        φ(u) where the group allows: the fiber update of a step on G ⋉ 𝔤 is
+        this action, and φ(u) itself is only needed for the base."""
+
+    @abc.abstractmethod
+    def fiber_map(self, group: type[AbstractLieGroup], s: Array, v: Array) -> Array:
+        """ψ_s v, the fiber part of f(u, v) on G ⋉ 𝔤, where s = −u in left and
+        s = u in right trivialisation (module docstring)."""
+
+    @abc.abstractmethod
+    def fiber_map_inverse(self, group: type[AbstractLieGroup], s: Array, w: Array) -> Array:
+        """ψ_s⁻¹ w."""
+
+    @abc.abstractmethod
+    def semidirect_inverse_differential(self, bundle: "AbstractSemidirect", U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
+        """Exact df⁻¹_U(X) on G ⋉ 𝔤 (`dual_number_inverse_differential` where
+        ψ_s = dφ_s, the tangent lift of φ)."""
+
+    @abc.abstractmethod
+    def planar_rotation(self, angle: Array, vectorised: bool) -> tuple[Array, Array]:
+        """(sin θ, cos θ) of the rotation f(angle·E), where E generates the
+        rotations of one coordinate plane (E² = −1 on it): the exact sub-flows
+        of a splitting turn through these. `vectorised`: compute with
+        arithmetic XLA vectorises (`groups.sincos`) where a batch is large."""
+
+    @abc.abstractmethod
+    def inverse_differential(self, bundle: AbstractBundle, U: AlgebraPair, X: AlgebraPair, method_order: int) -> AlgebraPair:
+        """df⁻¹_U(X), truncated as `resolve_truncation(method_order)` says
+        (`exact_inverse_differential` where that is None)."""
+
+    # --- the same for every map: lifted to the bundle by the bundle ---------------------
+    def check_bundle(self, bundle: AbstractBundle) -> None:
+        """Raise `TypeError` if these coordinates do not exist on `bundle`."""
+        self.check_group(bundle.base)
+
+    def map(self, bundle: AbstractBundle, U: AlgebraPair) -> BundleElement:
+        """f(U)."""
+        self.check_bundle(bundle)
+        return bundle.lifted_map(self, U)
+
+    def inverse_map(self, bundle: AbstractBundle, g: BundleElement) -> AlgebraPair:
+        """f⁻¹(g): the U near 0 with f(U) = g."""
+        self.check_bundle(bundle)
+        return bundle.lifted_inverse_map(self, g)
+
+    def apply(self, bundle: AbstractBundle, U: Increment, y: BundleElement, form: Literal["space", "body"]) -> BundleElement:
+        """y·f(U) (`form="body"`) or f(U)·y (`"space"`); U's fiber component
+        may be None, a zero known at trace time (`AbstractBundle.lifted_multiply`)."""
+        self.check_bundle(bundle)
+        return bundle.lifted_multiply(self, U, y, form)
+
+    def exact_inverse_differential(self, bundle: AbstractBundle, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
+        """df⁻¹_U(X) without truncation."""
+        self.check_bundle(bundle)
+        return bundle.lifted_inverse_differential(self, U, X)
+
+
+def dual_number_inverse_differential(
+    group_inverse_differential: Callable[[Array, Array], Array], U: AlgebraPair, X: AlgebraPair
+) -> AlgebraPair:
+    """df⁻¹ on G ⋉ 𝔤 for the tangent lift of a map φ, f(u, v) = (φ(u), dφ_s v).
+
+    G ⋉ 𝔤 (either trivialisation) is represented by matrices a + εb over the
+    dual numbers, ε² = 0, and its algebra element (x, y) by x + εy. The
+    tangent lift of φ is φ applied to u + εv, and its inverse differential is
+    dφ⁻¹ applied to dual numbers, whose ε-part is a directional derivative:
+
+        dφ⁻¹_{u+εv}(x + εy) = dφ⁻¹_u(x) + ε (dφ⁻¹_u(y) + D_u dφ⁻¹_u(x)[v]).
+
+    Valid where φ(−u) = φ(u)⁻¹, so that the left-trivialised dφ_u is dφ_{−u}."""
+    (u, v), (x, y) = U, X
+    first = group_inverse_differential(u, x)
+    _, derivative = jax.jvp(lambda w: group_inverse_differential(w, x), (u,), (v,))
+    return first, group_inverse_differential(u, y) + derivative
+
+
+def check_truncation(truncation, allowed_max=None):
+    """`ValueError` unless `truncation` is "auto", None or an int in range."""
+    if truncation is None or truncation == "auto":
+        return
+    if isinstance(truncation, bool) or not isinstance(truncation, int) or truncation < 0:
+        raise ValueError(f"truncation must be 'auto', None (exact) or an int ≥ 0, got {truncation!r}.")
+    if truncation > MAX_SERIES_TRUNCATION:
+        # The series is unrolled at trace time, one bracket per power.
+        raise ValueError(
+            f"truncation {truncation} is more than {MAX_SERIES_TRUNCATION} powers of ad; use truncation=None for the exact form."
+        )
+    if allowed_max is not None and truncation > allowed_max:
+        raise ValueError(f"truncation must be ≤ {allowed_max} here (that is already exact), got {truncation}.")

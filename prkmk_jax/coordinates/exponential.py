@@ -1,0 +1,71 @@
+"""Exponential coordinates (paper §4.2): f = exp, df⁻¹ = dexp⁻¹."""
+
+from typing import ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from ..groups.trig import sincos
+from ..series import default_truncation, dexp_inv_series
+from .base import AbstractCoordinates, Truncation, check_truncation, dual_number_inverse_differential
+
+
+class Exp(AbstractCoordinates):
+    """Exponential coordinates, dexp⁻¹ by the Bernoulli series of the bundle bracket.
+
+    `truncation`: `"auto"` keeps the terms ad^k with k ≤ max(p − 2, 0) for a
+    method of order p (enough for order p, see `series`); an int q keeps
+    k ≤ q; `None` uses the exact form (closed form of the base group, lifted
+    to the bundle).
+
+    On G ⋉ 𝔤 the map is the bundle's own exponential, exp(u, v) =
+    (exp(u), dexp_s v) (Table 2.2), and its exact dexp⁻¹ is the tangent lift
+    of the base group's (`dual_number_inverse_differential`).
+    """
+
+    truncation: Truncation = eqx.field(static=True, default="auto")
+    maps_lines_to_subgroups: ClassVar[bool] = True  # pyright: ignore[reportIncompatibleVariableOverride]  # implements an AbstractClassVar
+
+    def __check_init__(self):
+        check_truncation(self.truncation)
+
+    def check_group(self, group):
+        pass
+
+    def resolve_truncation(self, method_order):
+        if self.truncation == "auto":
+            return default_truncation(method_order)
+        return self.truncation
+
+    def group_map(self, group, u):
+        return group.exp(u)
+
+    def group_inverse_map(self, g):
+        return g.log()
+
+    def group_inverse_differential(self, group, u, x):
+        return group.dexp_inv(u, x)
+
+    def group_adjoint(self, group, u, x, inverse):
+        # exp(u)⁻¹ = exp(−u).
+        return group.exp_adjoint(-u if inverse else u, x)
+
+    def fiber_map(self, group, s, v):
+        return group.dexp(s, v)
+
+    def fiber_map_inverse(self, group, s, w):
+        return group.dexp_inv(s, w)
+
+    def semidirect_inverse_differential(self, bundle, U, X):
+        return dual_number_inverse_differential(bundle.base.dexp_inv, U, X)
+
+    def planar_rotation(self, angle, vectorised):
+        if vectorised:
+            return sincos(angle)
+        return jnp.sin(angle), jnp.cos(angle)
+
+    def inverse_differential(self, bundle, U, X, method_order):
+        q = self.resolve_truncation(method_order)
+        if q is None:
+            return self.exact_inverse_differential(bundle, U, X)
+        return dexp_inv_series(bundle.bracket, U, X, q)
