@@ -168,7 +168,7 @@ class AbstractBundle(eqx.Module):
         stage that no L enters, as for a field with η ≡ 0). The product then
         skips the fiber part of f(u, 0), which is zero but would cost its
         arithmetic: XLA does not fold 0·x for floats. On G ⋉ 𝔤 that part is
-        ψ_s v (`AbstractCoordinates.fiber_map`); skipping it makes the free
+        ψ_{∓u} v (`AbstractCoordinates.fiber_map`); skipping it makes the free
         body's step on T*SO(3) quicker (`benchmarks/against_revision.py`
         measures it)."""
 
@@ -232,9 +232,9 @@ class Cartesian(AbstractBundle):
 class AbstractSemidirect(AbstractBundle):
     """G ⋉ g with the lifted product (2.4) in left or right trivialisation.
 
-    A coordinate map lifts as f(u, v) = (φ(u), ψ_s v), s = −u (left) or u
-    (right), with φ and ψ the map's (`coordinates.base`): for the exponential
-    exp(u, v) = (exp(u), dexp_s v), the trivialised differential of the base
+    A coordinate map lifts as f(u, v) = (φ(u), ψ_{∓u} v) (left/right), with φ
+    and ψ the map's (`coordinates.base`): for the exponential
+    exp(u, v) = (exp(u), dexp_{∓u} v), the trivialised differential of the base
     exp (Table 2.2); for Cayley the §4.4 form (`coordinates.cayley`).
     """
 
@@ -265,11 +265,11 @@ class AbstractSemidirect(AbstractBundle):
 
     def lifted_map(self, coordinates, U):
         u, v = U
-        return BundleElement(coordinates.group_map(self.base, u), coordinates.fiber_map(self.base, self._sign() * u, v))
+        return BundleElement(coordinates.group_map(self.base, u), coordinates.fiber_map(self.base, u, v, self._sign()))
 
     def lifted_inverse_map(self, coordinates, a):
         u = coordinates.group_inverse_map(a.base)
-        return u, coordinates.fiber_map_inverse(self.base, self._sign() * u, a.fiber)
+        return u, coordinates.fiber_map_inverse(self.base, u, a.fiber, self._sign())
 
     def lifted_inverse_differential(self, coordinates, U, X):
         return coordinates.semidirect_inverse_differential(self, U, X)
@@ -277,22 +277,22 @@ class AbstractSemidirect(AbstractBundle):
     def lifted_multiply(self, coordinates, U, y, form):
         u, v = U
         base = self.base
-        fiber_part = None if v is None else coordinates.fiber_map(base, self._sign() * u, v)
+        fiber_part = None if v is None else coordinates.fiber_map(base, u, v, self._sign())
         g = coordinates.group_map(base, u)
-        return self._multiply_increment(y, g, fiber_part, lambda x, inverse: coordinates.group_adjoint(base, u, x, inverse), form)
+        return self._multiply_increment(y, g, fiber_part, lambda x, sign: coordinates.group_adjoint(base, u, x, sign), form)
 
     def _multiply_increment(self, y, g, w, act, form):
         """The product (multiply) of y with the increment (g, w), where g is
-        φ(u) and act(x, inverse) = Ad_{g} x or Ad_{g⁻¹} x is computed without g
+        φ(u) and act(x, ±1.0) = Ad_{g^{±1}} x is computed without g
         (g itself only enters the base, which XLA drops when unused)."""
         left = self.trivialization == "left"
         if form == "body":  # y·(g, w)
-            fiber = act(y.fiber, True) if left else y.fiber
+            fiber = act(y.fiber, -1.0) if left else y.fiber
             if w is not None:  # None: w = 0 (`lifted_multiply`)
                 fiber = fiber + (w if left else y.base.adjoint(w))
             return BundleElement(y.base.multiply(g), fiber)
         # (g, w)·y
-        fiber = y.fiber if left else act(y.fiber, False)
+        fiber = y.fiber if left else act(y.fiber, 1.0)
         if w is not None:
             fiber = fiber + (y.base.inverse().adjoint(w) if left else w)
         return BundleElement(g.multiply(y.base), fiber)

@@ -26,7 +26,7 @@ from prkmk_jax.scenes import FreeRigidBody, random_rotation
 class SquaredHalfCayley(pk.AbstractCoordinates):
     """φ(u) = cay(u/2)²: a fourth-order rational approximation of exp (it
     turns by 4·atan(θ/4)), with φ(−u) = φ(u)⁻¹. On G ⋉ 𝔤 it is lifted by
-    its tangent map, ψ_s = dφ_s."""
+    its tangent map, ψ_{σu} = dφ_{σu}."""
 
     truncation: None = eqx.field(static=True, default=None)
     maps_lines_to_subgroups: ClassVar[bool] = False
@@ -57,15 +57,15 @@ class SquaredHalfCayley(pk.AbstractCoordinates):
         z = jnp.linalg.solve(eye + rotation, x[..., None])[..., 0]  # (I + Ad_c)⁻¹ x
         return 2.0 * group.dcayley_inv(0.5 * u, z)
 
-    def group_adjoint(self, group, u, x, inverse):
+    def group_adjoint(self, group, u, x, sign):
         g = self.group_map(group, u)
-        return g.inverse().adjoint(x) if inverse else g.adjoint(x)
+        return g.adjoint(x) if sign > 0 else g.inverse().adjoint(x)
 
-    def fiber_map(self, group, s, v):
-        return self.group_differential(group, s, v)
+    def fiber_map(self, group, u, v, sign):
+        return self.group_differential(group, sign * u, v)
 
-    def fiber_map_inverse(self, group, s, w):
-        return self.group_inverse_differential(group, s, w)
+    def fiber_map_inverse(self, group, u, w, sign):
+        return self.group_inverse_differential(group, sign * u, w)
 
     def semidirect_inverse_differential(self, bundle, U, X):
         return dual_number_inverse_differential(partial(self.group_inverse_differential, bundle.base), U, X)

@@ -4,9 +4,9 @@ A coordinate map is given on the base group G, and each bundle lifts it
 (`AbstractBundle.lifted_map` and its siblings): componentwise on G × 𝔤 and
 G × G, and on G ⋉ 𝔤 as
 
-    f(u, v) = (φ(u), ψ_s v),   s = −u (left trivialisation) or u (right),
+    f(u, v) = (φ(u), ψ_{σu} v),   σ = −1 (left trivialisation) or 1 (right),
 
-with φ the map on G and ψ_s a linear map of the fiber that the map chooses
+with φ the map on G and ψ a linear map of the fiber that the map chooses
 (`fiber_map`). A map therefore implements only what it is on G (the
 `group_*` methods, `fiber_map` and the inverse differential on G ⋉ 𝔤), and
 every bundle, present or future, uses it: adding a map is one new module.
@@ -72,24 +72,24 @@ class AbstractCoordinates(eqx.Module):
         """dφ⁻¹_u(x), exact (right-trivialised)."""
 
     @abc.abstractmethod
-    def group_adjoint(self, group: type[AbstractLieGroup], u: Array, x: Array, inverse: bool) -> Array:
-        """Ad_{φ(u)} x, or Ad_{φ(u)⁻¹} x if `inverse`, computed without forming
-        φ(u) where the group allows: the fiber update of a step on G ⋉ 𝔤 is
-        this action, and φ(u) itself is only needed for the base."""
+    def group_adjoint(self, group: type[AbstractLieGroup], u: Array, x: Array, sign: float) -> Array:
+        """Ad_{φ(u)} x (`sign` 1.0) or Ad_{φ(u)⁻¹} x (`sign` −1.0), computed
+        without forming φ(u) where the group allows: the fiber update of a
+        step on G ⋉ 𝔤 is this action, and φ(u) itself only enters the base."""
 
     @abc.abstractmethod
-    def fiber_map(self, group: type[AbstractLieGroup], s: Array, v: Array) -> Array:
-        """ψ_s v, the fiber part of f(u, v) on G ⋉ 𝔤, where s = −u in left and
-        s = u in right trivialisation (module docstring)."""
+    def fiber_map(self, group: type[AbstractLieGroup], u: Array, v: Array, sign: float) -> Array:
+        """ψ_{σu} v with σ = `sign`, the fiber part of f(u, v) on G ⋉ 𝔤:
+        σ = −1.0 in left and 1.0 in right trivialisation (module docstring)."""
 
     @abc.abstractmethod
-    def fiber_map_inverse(self, group: type[AbstractLieGroup], s: Array, w: Array) -> Array:
-        """ψ_s⁻¹ w."""
+    def fiber_map_inverse(self, group: type[AbstractLieGroup], u: Array, w: Array, sign: float) -> Array:
+        """ψ_{σu}⁻¹ w."""
 
     @abc.abstractmethod
     def semidirect_inverse_differential(self, bundle: "AbstractSemidirect", U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
         """Exact df⁻¹_U(X) on G ⋉ 𝔤 (`dual_number_inverse_differential` where
-        ψ_s = dφ_s, the tangent lift of φ)."""
+        ψ_{σu} = dφ_{σu}, the tangent lift of φ)."""
 
     @abc.abstractmethod
     def planar_rotation(self, angle: Array, vectorised: bool) -> tuple[Array, Array]:
@@ -133,7 +133,7 @@ class AbstractCoordinates(eqx.Module):
 def dual_number_inverse_differential(
     group_inverse_differential: Callable[[Array, Array], Array], U: AlgebraPair, X: AlgebraPair
 ) -> AlgebraPair:
-    """df⁻¹ on G ⋉ 𝔤 for the tangent lift of a map φ, f(u, v) = (φ(u), dφ_s v).
+    """df⁻¹ on G ⋉ 𝔤 for the tangent lift of a map φ, f(u, v) = (φ(u), dφ_{σu} v).
 
     G ⋉ 𝔤 (either trivialisation) is represented by matrices a + εb over the
     dual numbers, ε² = 0, and its algebra element (x, y) by x + εy. The

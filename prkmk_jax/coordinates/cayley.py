@@ -3,7 +3,7 @@
 On G ⋉ 𝔤 the map is the one of §4.4, the Cayley transform for the algebra
 product (u, v)·(x, y) = (ux, −ad_x v) of (4.16):
 
-    cay(u, v) = (cay(u), (I − ½ad_s)⁻¹ v),   s = −u (left) or u (right).
+    cay(u, v) = (cay(u), (I ± ½ad_u)⁻¹ v)   (+ left, − right trivialisation).
 
 It is not the tangent lift of cay (the two differ at second order in U);
 both are valid coordinates. Its inverse differential is derived in
@@ -72,16 +72,16 @@ class Cayley(AbstractCoordinates):
     def group_inverse_differential(self, group, u, x):
         return _quadratic_group(group).dcayley_inv(u, x)
 
-    def group_adjoint(self, group, u, x, inverse):
+    def group_adjoint(self, group, u, x, sign):
         # cay(u)⁻¹ = cay(−u).
-        return _quadratic_group(group).cayley_adjoint(-u if inverse else u, x)
+        return _quadratic_group(group).cayley_adjoint(sign * u, x)
 
-    def fiber_map(self, group, s, v):
-        # (cay(ad_s) − I)/ad_s = (I − ½ad_s)⁻¹.
-        return _quadratic_group(group).inverse_shifted_ad(s, v, -0.5)
+    def fiber_map(self, group, u, v, sign):
+        # (cay(σ ad_u) − I)/(σ ad_u) = (I − ½σ ad_u)⁻¹.
+        return _quadratic_group(group).inverse_shifted_ad(u, v, -0.5 * sign)
 
-    def fiber_map_inverse(self, group, s, w):
-        return w - 0.5 * group.bracket(s, w)
+    def fiber_map_inverse(self, group, u, w, sign):
+        return w - 0.5 * sign * group.bracket(u, w)
 
     def semidirect_inverse_differential(self, bundle, U, X):
         # Differentiate cay(U + tV)·cay(U)⁻¹ with w = fiber of cay(U) and
@@ -92,7 +92,7 @@ class Cayley(AbstractCoordinates):
         group = _quadratic_group(bundle.base)
         br = group.bracket
         left = bundle.trivialization == "left"
-        w = self.fiber_map(group, -u if left else u, v)
+        w = self.fiber_map(group, u, v, -1.0 if left else 1.0)
         x_v = group.dcayley_inv(u, x)
         if left:
             z = group.cayley_adjoint(-u, y)  # Ad_{cay(−u)} = Ad_{cay(u)⁻¹}, without forming the matrix

@@ -19,7 +19,7 @@ class Exp(AbstractCoordinates):
     to the bundle).
 
     On G ⋉ 𝔤 the map is the bundle's own exponential, exp(u, v) =
-    (exp(u), dexp_s v) (Table 2.2), and its exact dexp⁻¹ is the tangent lift
+    (exp(u), dexp_{∓u} v) (Table 2.2), and its exact dexp⁻¹ is the tangent lift
     of the base group's (`dual_number_inverse_differential`).
     """
 
@@ -46,15 +46,15 @@ class Exp(AbstractCoordinates):
     def group_inverse_differential(self, group, u, x):
         return group.dexp_inv(u, x)
 
-    def group_adjoint(self, group, u, x, inverse):
+    def group_adjoint(self, group, u, x, sign):
         # exp(u)⁻¹ = exp(−u).
-        return group.exp_adjoint(-u if inverse else u, x)
+        return group.exp_adjoint(sign * u, x)
 
-    def fiber_map(self, group, s, v):
-        return group.dexp(s, v)
+    def fiber_map(self, group, u, v, sign):
+        return group.dexp(sign * u, v)
 
-    def fiber_map_inverse(self, group, s, w):
-        return group.dexp_inv(s, w)
+    def fiber_map_inverse(self, group, u, w, sign):
+        return group.dexp_inv(sign * u, w)
 
     def semidirect_inverse_differential(self, bundle, U, X):
         return dual_number_inverse_differential(bundle.base.dexp_inv, U, X)
