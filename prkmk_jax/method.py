@@ -53,8 +53,17 @@ class AbstractFieldOnBundle(eqx.Module):
         """`args` after this field's checks of its parameters: a type or shape
         that does not fit raises `TypeError`/`ValueError` at trace time, a
         value out of range (a moment of inertia that is not > 0) raises at
-        run time through `eqx.error_if`, whose output this returns. The
-        drivers (`integrate`, `resume`, `PRKMKSolver`) call it once a run."""
+        run time through `checks.checked`, whose output this returns. The
+        drivers (`integrate`, `resume`, `PRKMKSolver`) call it once a run,
+        through `checked_field_args`."""
+
+
+def checked_field_args(vector_field: VectorField, args: PyTree) -> PyTree:
+    """`args` after the field's own checks where the field is a scene (an
+    `AbstractFieldOnBundle`); a plain function's `args` as they are."""
+    if isinstance(vector_field, AbstractFieldOnBundle):
+        return vector_field.checked_args(args)
+    return args
 
 
 def tree_scale(alpha, tree):

@@ -15,8 +15,9 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from .bundles import AlgebraPair, BundleElement
+from .checks import collected_checks
 from .interpolation import OnGroupInterpolation
-from .method import AbstractFieldOnBundle, AbstractMethod, first_failure, tree_scale
+from .method import AbstractMethod, checked_field_args, first_failure, tree_scale
 
 DENSE_OUTPUT_TRUNCATION_ORDER = 4
 """Dense output evaluates df⁻¹ at the step's end truncated as for a method of
@@ -158,10 +159,13 @@ class PRKMKSolver(diffrax.AbstractSolver):
         # Static type/shape errors now; the run-time checks of the data (a
         # finite, orthogonal, det +1 base) act through the checked value, so
         # the solver state is computed from it: an invalid y0 raises.
-        y0 = method.bundle.check(y0)
-        # A scene's parameters: static errors now, run-time checks through the
-        # checked value (kept alive below, with y0's).
-        checked_args = term.vector_field.checked_args(args) if isinstance(term.vector_field, AbstractFieldOnBundle) else None
+        # A scene's parameters likewise. The run-time checks are applied
+        # together, as one branch of the program that y0 passes through (kept
+        # alive below).
+        with collected_checks() as checks:
+            y0 = method.bundle.check(y0)
+            checked_field_args(term.vector_field, args)
+        y0 = checks.applied_to(y0)
         method.check_vector_field(field, field.direction * t0, y0, args)
         # The solver state is what a step carries (`Step.carried`): the
         # previous step's field at its start and its stage slopes, the implicit
@@ -171,7 +175,7 @@ class PRKMKSolver(diffrax.AbstractSolver):
         # attitude), and XLA would then drop those checks as dead code. A zero
         # that depends on every checked entry keeps them alive (XLA does not fold
         # 0·x for floats; x is finite once the checks have passed).
-        checked = [leaf for leaf in jax.tree.leaves((y0, checked_args)) if eqx.is_inexact_array(leaf)]
+        checked = [leaf for leaf in jax.tree.leaves(y0) if eqx.is_inexact_array(leaf)]
         zero = jnp.asarray(sum(jnp.sum(leaf) for leaf in checked)) * 0
         return jax.tree.map(lambda x: x + zero.astype(x.dtype), carried)
 
