@@ -30,7 +30,6 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
-from .checks import checked
 from .groups.base import AbstractLieGroup
 
 if TYPE_CHECKING:
@@ -79,7 +78,7 @@ class AbstractBundle(eqx.Module):
     # --- element validation ----------------------------------------------------
     def check(self, y: BundleElement) -> BundleElement:
         """Static checks (types, shapes; `TypeError`/`ValueError`) and run-time
-        checks of the data (`checks.checked`); returns `y` to be used onwards."""
+        checks of the data (`eqx.error_if`); returns `y` to be used onwards."""
         if not isinstance(y, BundleElement):
             raise TypeError(f"{type(self).__name__} elements are BundleElement(base, fiber), got {type(y).__name__}.")
         if not isinstance(y.base, self.base):
@@ -103,7 +102,7 @@ class AbstractBundle(eqx.Module):
             fiber = y.fiber.check()
         else:
             fiber_array = cast(Array, y.fiber)  # not a group element: checked above
-            fiber = checked(fiber_array, ~jnp.all(jnp.isfinite(fiber_array)), "bundle fiber is not finite (NaN or inf).")
+            fiber = eqx.error_if(fiber_array, ~jnp.all(jnp.isfinite(fiber_array)), "bundle fiber is not finite (NaN or inf).")
         return BundleElement(base, fiber)
 
     def project(self, y: BundleElement) -> BundleElement:

@@ -8,7 +8,6 @@ from jax.core import Tracer
 from jaxtyping import Array, Float, Int, PyTree, Real
 
 from .bundles import BundleElement
-from .checks import checked, collected_checks
 from .method import RESULTS, AbstractMethod, Time, VectorField, checked_field_args, first_failure
 from .step import STAGE_SLOPES_NAME
 
@@ -58,7 +57,7 @@ def _is_concrete(x) -> bool:
 def _check_args(args):
     def check(leaf):
         if eqx.is_inexact_array(leaf):
-            return checked(leaf, ~jnp.all(jnp.isfinite(leaf)), "args contain a non-finite value (NaN or inf).")
+            return eqx.error_if(leaf, ~jnp.all(jnp.isfinite(leaf)), "args contain a non-finite value (NaN or inf).")
         return leaf
 
     return jax.tree.map(check, args)
@@ -164,17 +163,14 @@ def _check_method(method) -> None:
 def _checked_start(method, vector_field, y, t, dt, args):
     """The checks both entry points make before a run: the state (static and
     run-time), dt, args and the vector field's output at the start time t,
-    with t and dt in the state's dtype. Returns (y, t, dt, args). The
-    run-time checks are applied together, as one branch of the program."""
-    with collected_checks() as checks:
-        y = method.bundle.check(y)
-        dtype = jnp.result_type(*jax.tree.leaves(y))
-        t = jnp.asarray(t, dtype)
-        dt = _checked_dt(dt, dtype)
-        args = _check_args(args)
-        method.check_fits(vector_field)
-        args = checked_field_args(vector_field, args)
-    y, dt, args = checks.applied_to((y, dt, args))
+    with t and dt in the state's dtype. Returns (y, t, dt, args)."""
+    y = method.bundle.check(y)
+    dtype = jnp.result_type(*jax.tree.leaves(y))
+    t = jnp.asarray(t, dtype)
+    dt = _checked_dt(dt, dtype)
+    args = _check_args(args)
+    method.check_fits(vector_field)
+    args = checked_field_args(vector_field, args)
     method.check_vector_field(vector_field, t, y, args)
     return y, t, dt, args
 
@@ -184,7 +180,7 @@ def _checked_dt(dt, dtype) -> Array:
         if not float(dt) > 0:
             raise ValueError(f"dt must be > 0 and finite, got {dt}.")
     dt = jnp.asarray(dt, dtype)
-    return checked(dt, ~(dt > 0), "dt must be > 0 and finite.")
+    return eqx.error_if(dt, ~(dt > 0), "dt must be > 0 and finite.")
 
 
 def _run(method, vector_field, start: Continuation, num_steps, args, save_every, throw) -> Trajectory:

@@ -53,7 +53,7 @@ class AbstractFieldOnBundle(eqx.Module):
         """`args` after this field's checks of its parameters: a type or shape
         that does not fit raises `TypeError`/`ValueError` at trace time, a
         value out of range (a moment of inertia that is not > 0) raises at
-        run time through `checks.checked`, whose output this returns. The
+        run time through `eqx.error_if`, whose output this returns. The
         drivers (`integrate`, `resume`, `PRKMKSolver`) call it once a run,
         through `checked_field_args`."""
 

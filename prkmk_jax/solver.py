@@ -15,7 +15,6 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from .bundles import AlgebraPair, BundleElement
-from .checks import collected_checks
 from .interpolation import OnGroupInterpolation
 from .method import AbstractMethod, checked_field_args, first_failure, tree_scale
 
@@ -159,13 +158,10 @@ class PRKMKSolver(diffrax.AbstractSolver):
         # Static type/shape errors now; the run-time checks of the data (a
         # finite, orthogonal, det +1 base) act through the checked value, so
         # the solver state is computed from it: an invalid y0 raises.
-        # A scene's parameters likewise. The run-time checks are applied
-        # together, as one branch of the program that y0 passes through (kept
-        # alive below).
-        with collected_checks() as checks:
-            y0 = method.bundle.check(y0)
-            checked_field_args(term.vector_field, args)
-        y0 = checks.applied_to(y0)
+        y0 = method.bundle.check(y0)
+        # A scene's parameters: static errors now, run-time checks through the
+        # checked value (kept alive below, with y0's).
+        checked_args = checked_field_args(term.vector_field, args)
         method.check_vector_field(field, field.direction * t0, y0, args)
         # The solver state is what a step carries (`Step.carried`): the
         # previous step's field at its start and its stage slopes, the implicit
@@ -174,9 +170,9 @@ class PRKMKSolver(diffrax.AbstractSolver):
         # The field may not read every part of y0 (the free body ignores the
         # attitude), and XLA would then drop those checks as dead code. A zero
         # that depends on every checked entry keeps them alive (XLA does not fold
-        # 0·x for floats; x is finite once the checks have passed).
-        checked = [leaf for leaf in jax.tree.leaves(y0) if eqx.is_inexact_array(leaf)]
-        zero = jnp.asarray(sum(jnp.sum(leaf) for leaf in checked)) * 0
+        # 0·x for floats; the `where` keeps an infinite parameter from making it NaN).
+        checked = [leaf for leaf in jax.tree.leaves((y0, checked_args)) if eqx.is_inexact_array(leaf)]
+        zero = jnp.asarray(sum(jnp.sum(jnp.where(jnp.isfinite(leaf), leaf, 0) * 0) for leaf in checked))
         return jax.tree.map(lambda x: x + zero.astype(x.dtype), carried)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):

@@ -2,11 +2,10 @@
 
 from collections.abc import Callable, Sequence
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
-
-from ..checks import checked
 
 
 def taylor_or_exact(
@@ -81,14 +80,14 @@ def nearest_rotation(matrix: Array) -> Array:
 
 
 def checked_rotation(matrix: Array, group_name: str) -> Array:
-    """`matrix`, with run-time errors (`checks.checked`) unless it is finite,
+    """`matrix`, with run-time errors (`eqx.error_if`) unless it is finite,
     orthogonal to `ORTHOGONALITY_TOLERANCE` and of determinant +1."""
     tol = max(float(np.sqrt(np.finfo(matrix.dtype).eps)), ORTHOGONALITY_TOLERANCE)
-    matrix = checked(matrix, ~jnp.all(jnp.isfinite(matrix)), f"{group_name} element is not finite (NaN or inf).")
-    matrix = checked(
+    matrix = eqx.error_if(matrix, ~jnp.all(jnp.isfinite(matrix)), f"{group_name} element is not finite (NaN or inf).")
+    matrix = eqx.error_if(
         matrix,
         jnp.any(orthogonality_defect(matrix) > tol),
         f"{group_name} element is not orthogonal: max|RᵀR − I| exceeds {tol:.0e} "
         "(if this is rounding drift, `project()` returns the nearest rotation).",
     )
-    return checked(matrix, jnp.any(jnp.linalg.det(matrix) < 0), f"{group_name} element has det = −1: a reflection, not a rotation.")
+    return eqx.error_if(matrix, jnp.any(jnp.linalg.det(matrix) < 0), f"{group_name} element has det = −1: a reflection, not a rotation.")

@@ -6,7 +6,6 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ..checks import checked
 from ._util import as_array, check_floating
 from .base import AbstractQuadraticGroup
 
@@ -59,7 +58,7 @@ class VectorSpace(AbstractQuadraticGroup):
         return self
 
     def check(self) -> Self:
-        return type(self)(checked(self.value, ~jnp.all(jnp.isfinite(self.value)), "VectorSpace element is not finite (NaN or inf)."))
+        return type(self)(eqx.error_if(self.value, ~jnp.all(jnp.isfinite(self.value)), "VectorSpace element is not finite (NaN or inf)."))
 
     @classmethod
     def bracket(cls, u: Vector, v: Vector) -> Vector:

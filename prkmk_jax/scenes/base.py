@@ -10,13 +10,13 @@ import abc
 import functools
 from typing import ClassVar, Literal
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, PyTree
 
 from ..bundles import AbstractBundle, AlgebraPair, BundleElement, Cotangent
-from ..checks import checked
 from ..compositions import CompositionCoefficients
 from ..coordinates import AbstractCoordinates, Exp
 from ..groups import SO3, AbstractRotationGroup
@@ -121,18 +121,20 @@ def checked_moments(owner: str, moments, allow_scalar: bool = False) -> Array:
     (or () where `allow_scalar`): a wrong shape is a `ValueError` naming
     `owner`; a moment that is not > 0 (a negative, zero or NaN moment: the
     inertia is not positive definite) raises where the data is known, eagerly
-    or at run time under `jax.jit` (`checks.checked`)."""
+    or at run time under `jax.jit` (`eqx.error_if`)."""
     moments = _floating_array(moments)
     shape = moments.shape
     if not ((allow_scalar and shape == ()) or (len(shape) >= 1 and shape[-1] == 3)):
         allowed = "() or (…, 3)" if allow_scalar else "(…, 3)"
         raise ValueError(f"{owner}: the principal moments of inertia must have shape {allowed}, got {shape}.")
-    return checked(moments, ~jnp.all(moments > 0), f"{owner}: every principal moment of inertia must be > 0 (a positive-definite inertia).")
+    return eqx.error_if(
+        moments, ~jnp.all(moments > 0), f"{owner}: every principal moment of inertia must be > 0 (a positive-definite inertia)."
+    )
 
 
 def checked_inertia_tensor(owner: str, tensor) -> Array:
     """A body-frame inertia tensor (3, 3): symmetric and positive definite,
-    checked where the data is known (`checks.checked`), as `checked_moments`."""
+    checked where the data is known (`eqx.error_if`), as `checked_moments`."""
     tensor = _floating_array(tensor)
     if tensor.shape != (3, 3):
         raise ValueError(f"{owner}: an inertia tensor must have shape (3, 3), got {tensor.shape}.")
@@ -140,13 +142,13 @@ def checked_inertia_tensor(owner: str, tensor) -> Array:
     symmetric = jnp.max(jnp.abs(tensor - tensor.T)) <= 1e3 * jnp.finfo(tensor.dtype).eps * scale
     # eigvalsh reads one triangle; the symmetry test above covers the other.
     positive = jnp.min(jnp.linalg.eigvalsh(tensor)) > 0
-    return checked(tensor, ~(symmetric & positive), f"{owner}: the inertia tensor must be symmetric and positive definite.")
+    return eqx.error_if(tensor, ~(symmetric & positive), f"{owner}: the inertia tensor must be symmetric and positive definite.")
 
 
 def checked_pair_masses(owner: str, masses) -> Array:
     """The masses J (…, n) of the symmetric body on SO(n) (M = JΩ + ΩJ): the
     inertia Ω ↦ JΩ + ΩJ is positive definite where every Jᵢ + Jⱼ (i ≠ j) is
-    > 0, checked where the data is known (`checks.checked`)."""
+    > 0, checked where the data is known (`eqx.error_if`)."""
     masses = _floating_array(masses)
     if masses.ndim < 1 or masses.shape[-1] < 2:
         raise ValueError(f"{owner}: the masses J must have shape (…, n) with n ≥ 2, got {masses.shape}.")
@@ -154,7 +156,7 @@ def checked_pair_masses(owner: str, masses) -> Array:
     sums = masses[..., :, None] + masses[..., None, :]
     off_diagonal = ~jnp.eye(n, dtype=bool)
     message = f"{owner}: every Jᵢ + Jⱼ (i ≠ j) must be > 0 (a positive-definite inertia)."
-    return checked(masses, ~jnp.all(jnp.where(off_diagonal, sums > 0, True)), message)
+    return eqx.error_if(masses, ~jnp.all(jnp.where(off_diagonal, sums > 0, True)), message)
 
 
 def checked_parameters(owner: str, args, kind: type):
