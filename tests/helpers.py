@@ -130,6 +130,23 @@ def empirical_order(method: pk.PRKMK, t_end=2.0, steps=(10, 20, 40, 80), seed=0,
     return slope, np.asarray(errs)
 
 
+def scene_order(method: pk.AbstractMethod, scene, y0, args, t_end: float, steps, reference=None) -> tuple[float, list[float]]:
+    """Log–log slope of the error at `t_end` (max over the embedding's
+    entries) against h = t_end/n for n in `steps`, and the errors: the
+    method's run of the scene against `reference` (default the scene's
+    DOP853 reference solution)."""
+    if reference is None:
+        reference = scene_reference(scene, y0, t_end, args)[-1]
+    final_state = final_state_by_steps(method, scene)
+    errors = []
+    for n in steps:
+        y, converged = final_state(y0, t_end / n, n, args)
+        assert converged
+        errors.append(float(np.max(np.abs(np.asarray(scene.to_embedding(y)) - reference))))
+    slope = float(np.polyfit(np.log(t_end / np.asarray(steps)), np.log(errors), 1)[0])
+    return slope, errors
+
+
 def assert_generator_matches_embedding(scene, t, y, args, atol=1e-13):
     """d/ds of y·exp(s(ξ, η)) at s = 0, through the bundle's own product and
     exp (`jax.jvp`), equals the scene's embedding field at (t, y): the two

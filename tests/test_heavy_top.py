@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import assert_generator_matches_embedding, final_state_by_steps, scene_reference
+from helpers import assert_generator_matches_embedding, scene_order, scene_reference
 from prkmk_jax.scenes import HeavyTop, TopParameters, random_rotation
 
 TOP = HeavyTop()
@@ -67,15 +67,8 @@ ORDERS = {  # name: (scene, method, order)
 @pytest.mark.parametrize("name", ORDERS, ids=list(ORDERS))
 def test_empirical_order(name):
     scene, method, order = ORDERS[name]
-    t_end, steps = 2.0, np.array([20, 40, 80, 160])
-    reference = _reference(t_end, ASYMMETRIC)[-1]
-    final_state = final_state_by_steps(method, scene)
-    errors = []
-    for n in steps:
-        y, converged = final_state(Y0, t_end / n, n, ASYMMETRIC)
-        assert converged
-        errors.append(np.max(np.abs(np.asarray(scene.to_embedding(y)) - reference)))
-    slope = np.polyfit(np.log(t_end / steps), np.log(errors), 1)[0]
+    t_end = 2.0
+    slope, errors = scene_order(method, scene, Y0, ASYMMETRIC, t_end, [20, 40, 80, 160], reference=_reference(t_end, ASYMMETRIC)[-1])
     assert abs(slope - order) < 0.2, (slope, errors)
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import final_state_by_steps, max_leaf_difference, scene_reference
+from helpers import final_state_by_steps, max_leaf_difference, scene_order, scene_reference
 from prkmk_jax.groups import sincos
 from prkmk_jax.scenes import (
     ForcedParameters,
@@ -150,13 +150,11 @@ def test_empirical_order(name, run):
 @pytest.mark.parametrize("coordinates", [pk.Exp(), pk.Cayley()], ids=["exp", "cayley"])
 def test_order_on_the_other_scenes(name, coordinates):
     scene, y0, args = CASES[name]
-    t_end, steps = 2.0, np.array([20, 40, 80])
-    reference = scene_reference(scene, y0, t_end, args, t_eval=[t_end])[-1]
+    t_end = 2.0
+    reference = scene_reference(scene, y0, t_end, args)[-1]
     for coefficients in (None, pk.suzuki_5):
         method = scene.splitting(coefficients, coordinates)
-        final_state = final_state_by_steps(method, scene)
-        errors = [np.max(np.abs(np.asarray(scene.to_embedding(final_state(y0, t_end / n, n, args)[0])) - reference)) for n in steps]
-        slope = np.polyfit(np.log(t_end / steps), np.log(errors), 1)[0]
+        slope, errors = scene_order(method, scene, y0, args, t_end, [20, 40, 80], reference=reference)
         assert abs(slope - method.order) < 0.2, (coefficients, slope, errors)
 
 

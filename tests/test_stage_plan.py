@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import INERTIA, final_state_by_steps, initial_state, rigid_body_field, scene_reference
+from helpers import INERTIA, initial_state, rigid_body_field, scene_order, scene_reference
 from prkmk_jax.scenes import FreeRigidBody, HeavyTop, SphericalTop, SymmetricRigidBody, TopParameters, random_rotation
 from prkmk_jax.stage_plan import COUPLED, Explicit, Implicit, StageDependence, output_dependence, plan_stages
 
@@ -194,14 +194,7 @@ def test_explicit_verlet_keeps_its_order_and_the_spin_to_round_off():
     for name, values in scene.invariants(along, args).items():
         np.testing.assert_allclose(values, values[0], atol=1e-10, err_msg=name)
     method = scene.method(pk.stormer_verlet)
-    steps = np.array([20, 40, 80, 160])
-    final_state = final_state_by_steps(method, scene)
-    errors = []
-    for n in steps:
-        y, converged = final_state(y0, t_end / n, n, args)
-        assert converged
-        errors.append(np.max(np.abs(np.asarray(scene.to_embedding(y)) - reference)))
-    slope = np.polyfit(np.log(t_end / steps), np.log(errors), 1)[0]
+    slope, errors = scene_order(method, scene, y0, args, t_end, [20, 40, 80, 160], reference=reference)
     assert abs(slope - 2) < 0.2, (slope, errors)
     traj = pk.integrate(method, scene, y0, 0.0, 0.1, 2000, args, save_every=100)
     spin = scene.invariants(traj.ys, args)["spin"]
