@@ -33,8 +33,7 @@ Tables:
   time over diffrax's at each target, for the library's fastest run and
   for its fastest symplectic run (a splitting or a Lobatto IIIA–IIIB
   pair; the RKMK runs keep the group but not the symplectic form).
-- `stage_layout`, `revision`: `stage_layout.json` and
-  `against_revision_heavy_top.json`, one row per case.
+- `stage_layout`: `stage_layout.json`, one row per case.
 - `round_off`, `round_off_cost`: `round_off.json`, the growth of the
   invariants' errors over long runs and what solving the stages to
   round-off costs.
@@ -44,13 +43,11 @@ Tables:
   symplectic run.
 - `work_precision`, `long_time`, `heavy_top`, `throughput`, `stability`,
   `floor`, `against_scan`, `explicit_stages`, `root_finders`,
-  `against_revision` (and `against_revision_recent`, the same script against
-  a recent revision), `xla_codegen`: the script of the same name's results
+  `against_revision`, `xla_codegen`: the script of the same name's results
   file, as its function's docstring says.
 """
 
 import argparse
-import functools
 import json
 import re
 import sys
@@ -64,7 +61,6 @@ DOCUMENTS = {
     "benchmarks/README.md": (
         "accuracy",
         "stage_layout",
-        "revision",
         "work_precision",
         "long_time",
         "round_off",
@@ -77,7 +73,6 @@ DOCUMENTS = {
         "explicit_stages",
         "root_finders",
         "against_revision",
-        "against_revision_recent",
         "xla_codegen",
     ),
     "docs/concepts/choosing.md": ("decision", "summary"),
@@ -269,10 +264,10 @@ def stage_layout_table(_entries=None, root: Path | None = None) -> str:
     return _table([*headers, "compile loop, s"], rows)
 
 
-def revision_table(_entries=None, root: Path | None = None, name: str = "against_revision_heavy_top.json") -> str:
+def against_revision_table(_entries=None, root: Path | None = None) -> str:
     """`against_revision.py`'s results: ns per trajectory-step now and at
     the earlier revision, interleaved."""
-    data = results_file(name, root)
+    data = results_file("against_revision.json", root)
     device = device_name(data["machine"])
     rows = [
         [
@@ -579,9 +574,7 @@ def xla_codegen_table(_entries=None, root: Path | None = None) -> str:
 
 OTHER_SOURCES = (
     "stage_layout.json",
-    "against_revision_heavy_top.json",
     "against_revision.json",
-    "against_revision_recent.json",
     "round_off.json",
     "work_precision.json",
     "long_time.json",
@@ -602,7 +595,6 @@ TABLES = {
     "decision": decision_table,
     "summary": summary_table,
     "stage_layout": stage_layout_table,
-    "revision": revision_table,
     "round_off": round_off_table,
     "round_off_cost": round_off_cost_table,
     "work_precision": work_precision_table,
@@ -614,8 +606,7 @@ TABLES = {
     "against_scan": against_scan_table,
     "explicit_stages": explicit_stages_table,
     "root_finders": root_finders_table,
-    "against_revision": functools.partial(revision_table, name="against_revision.json"),
-    "against_revision_recent": functools.partial(revision_table, name="against_revision_recent.json"),
+    "against_revision": against_revision_table,
     "xla_codegen": xla_codegen_table,
 }
 
