@@ -9,6 +9,7 @@ from jaxtyping import Array, Float, Int, PyTree, Real
 
 from .bundles import BundleElement
 from .method import RESULTS, AbstractMethod, Time, VectorField, checked_field_args, first_failure
+from .reversible import ReversibleGradient, reversible_run
 from .step import STAGE_SLOPES_NAME
 
 
@@ -87,6 +88,7 @@ def integrate(
     *,
     save_every: int = 1,
     throw: bool = True,
+    gradient: ReversibleGradient | None = None,
 ) -> Trajectory:
     """Integrate from `t0` with `num_steps` steps of size `dt`, saving `y0`
     and every `save_every`-th state.
@@ -104,12 +106,18 @@ def integrate(
     `PRKMK.carried_step`); they converge to the same tolerance either
     way. To continue the run later, pass `Trajectory.continuation` to
     `resume`.
+
+    `gradient`: None differentiates through the stored steps (reverse mode
+    keeps every step's state and stage slopes); `ReversibleGradient()`
+    keeps only the saved states (and its checkpoints) and reconstructs the
+    others backwards, for memory that does not grow with the number of
+    steps (`reversible`).
     """
     _check_method(method)
     y0, t0, dt, args = _checked_start(method, vector_field, y0, t0, dt, args)
     carried = method.initial_carried(vector_field, t0, y0, args)
     start = Continuation(y0, t0, dt, jnp.array(0, jnp.int32), carried)
-    return _run(method, vector_field, start, num_steps, args, save_every, throw)
+    return _run(method, vector_field, start, num_steps, args, save_every, throw, gradient)
 
 
 def resume(
@@ -121,6 +129,7 @@ def resume(
     *,
     save_every: int = 1,
     throw: bool = True,
+    gradient: ReversibleGradient | None = None,
 ) -> Trajectory:
     """Continue a run of `integrate` (or of `resume`) for `num_steps` more
     steps from its `Trajectory.continuation`.
@@ -149,7 +158,7 @@ def resume(
     if jax.tree.structure(continuation.carried) != expected:
         raise TypeError("the continuation comes from another method (what it carries has another structure).")
     start = eqx.tree_at(lambda c: (c.y, c.dt), continuation, (y, dt))
-    return _run(method, vector_field, start, num_steps, args, save_every, throw)
+    return _run(method, vector_field, start, num_steps, args, save_every, throw, gradient)
 
 
 def _check_method(method) -> None:
@@ -183,11 +192,18 @@ def _checked_dt(dt, dtype) -> Array:
     return eqx.error_if(dt, ~(dt > 0), "dt must be > 0 and finite.")
 
 
-def _run(method, vector_field, start: Continuation, num_steps, args, save_every, throw) -> Trajectory:
+def _run(method, vector_field, start: Continuation, num_steps, args, save_every, throw, gradient=None) -> Trajectory:
     num_steps, save_every = _static_count("num_steps", num_steps), _static_count("save_every", save_every)
     if num_steps % save_every:
         raise ValueError(f"save_every={save_every} must divide num_steps={num_steps}.")
     t0, dt = start.t0, start.dt
+    if gradient is not None:
+        if not isinstance(gradient, ReversibleGradient):
+            raise TypeError(f"gradient must be None (through the stored steps) or ReversibleGradient(...), got {gradient!r}.")
+        saved, y_last, result, total, worst, carried = reversible_run(
+            method, vector_field, start.y, start.carried, t0, dt, start.steps_done, args, num_steps // save_every, save_every, gradient
+        )
+        return _trajectory(start, saved, y_last, result, total, worst, carried, num_steps // save_every, save_every, throw)
 
     def one_step(carry, n):
         y, result, total, worst, carried = carry
@@ -212,9 +228,14 @@ def _run(method, vector_field, start: Continuation, num_steps, args, save_every,
     num_saves = num_steps // save_every
     save_steps = start.steps_done + save_every * jnp.arange(num_saves + 1, dtype=jnp.int32)
     (y_last, result, total, worst, carried), saved = jax.lax.scan(one_save, init, save_steps[:-1])
+    return _trajectory(start, saved, y_last, result, total, worst, carried, num_saves, save_every, throw)
+
+
+def _trajectory(start: Continuation, saved, y_last, result, total, worst, carried, num_saves, save_every, throw) -> Trajectory:
+    save_steps = start.steps_done + save_every * jnp.arange(num_saves + 1, dtype=jnp.int32)
     ys = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), start.y, saved)
-    ts = t0 + save_steps * dt
+    ts = start.t0 + save_steps * start.dt
     if throw:
         ys = result.error_if(ys, result != RESULTS.successful)
-    continuation = Continuation(y_last, t0, dt, save_steps[-1], carried)
+    continuation = Continuation(y_last, start.t0, start.dt, save_steps[-1], carried)
     return Trajectory(ts, ys, result, {"num_iterations": total, "max_iterations_per_step": worst}, continuation)

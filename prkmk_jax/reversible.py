@@ -1,0 +1,201 @@
+"""Reverse-mode gradients of a run without its stored trajectory.
+
+A method's step can be undone: yₙ = Φ_h⁻¹(yₙ₊₁). For a symmetric method
+Φ_h⁻¹ = Φ_{−h}; for any PRKMK method Φ_h⁻¹ = Φ*_{−h}, the adjoint method
+(`Adjoint`, Φ*_h = Φ_{−h}⁻¹) at −h. Both hold to the stage solve and
+round-off. So the backward pass of a run need not keep the states of the
+forward pass: it walks back from the last state, reconstructing each state
+by the undoing step and applying the step's VJP there (implicit stages are
+differentiated as in the forward step). The forward pass keeps the saved
+states and one state every `checkpoint_every` steps; each stretch between
+two kept states is reconstructed from the later one, so the reconstruction
+error cannot grow over more than that stretch, and the memory is that of
+the kept states, whatever the number of steps.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .made_of_steps import Adjoint
+from .method import RESULTS, AbstractMethod, first_failure
+from .step import PRKMK
+
+
+class ReversibleGradient(eqx.Module):
+    """Gradients of `integrate` by reconstructing the states backwards
+    (module docstring), for `integrate(..., gradient=ReversibleGradient())`.
+
+    `checkpoint_every`: keep one state every this many steps (it must divide
+    `save_every`); None keeps only the saved states, so a run that saves its
+    last state only (`save_every=num_steps`) keeps nothing else: memory
+    independent of the number of steps, and reconstruction over the whole run.
+    """
+
+    checkpoint_every: int | None = eqx.field(static=True, default=None)
+
+    def __check_init__(self):
+        k = self.checkpoint_every
+        if k is not None and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
+            raise ValueError(f"checkpoint_every must be None or an int ≥ 1, got {k!r}.")
+
+
+def undoing_method(method: AbstractMethod) -> AbstractMethod:
+    """The method whose step of −h undoes a step of h of `method`: the method
+    itself where it is symmetric by construction (`is_symmetric`), the
+    adjoint of a PRKMK method, the PRKMK method of an `Adjoint`."""
+    if method.is_symmetric:
+        return method
+    if isinstance(method, PRKMK):
+        return Adjoint(method)  # pyright: ignore[reportCallIssue]  # equinox: AbstractVars implemented by properties are not __init__ fields
+    if isinstance(method, Adjoint) and isinstance(method.method, PRKMK):
+        return method.method
+    raise TypeError(
+        f"reversible gradients need a method whose step can be undone exactly: a PRKMK method or its Adjoint (undone by "
+        f"each other), or a method symmetric by construction (Symmetrized, Splitting, a Composition of those or one with "
+        f"assume_symmetric_base=True); got a {type(method).__name__} that is none of these (a Composition of a base that "
+        "is not symmetric: compose Symmetrized(base) instead)."
+    )
+
+
+def _chunk_steps(gradient: ReversibleGradient, save_every: int) -> int:
+    k = save_every if gradient.checkpoint_every is None else gradient.checkpoint_every
+    if save_every % k:
+        raise ValueError(f"checkpoint_every={k} must divide save_every={save_every}.")
+    return k
+
+
+def reversible_run(method, vector_field, y0, carried0, t0, dt, steps_done, args, num_saves, save_every, gradient):
+    """The forward pass of `integrate` under `ReversibleGradient`:
+    (saved states, last state, result, iteration total and maximum, carried),
+    differentiable in (y0, args, vector_field) by reconstruction."""
+    chunk = _chunk_steps(gradient, save_every)
+    chunks_per_save = save_every // chunk
+    undo = undoing_method(method)
+    if not isinstance(vector_field, eqx.Module):
+        # A plain function may close over arrays that are differentiated (a
+        # parameter in the enclosing scope): made explicit, they are
+        # differentiated as `args` are.
+        vector_field = eqx.filter_closure_convert(vector_field, t0, y0, args)
+    # The carried stage slopes only start the first step's stage iteration:
+    # its solution, and so the gradient, does not depend on them.
+    carried0 = jax.lax.stop_gradient(carried0)
+    saved, y_last, *counts = _run_and_undo(
+        (y0, args, vector_field), method, undo, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk
+    )
+    # The result, the iteration counts and the carried slopes are not
+    # differentiated (the slopes only start the next run's stages).
+    result, total, worst, carried = jax.lax.stop_gradient(counts)
+    return saved, y_last, result, total, worst, carried
+
+
+def _forward(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk):
+    """Every step, keeping the state at the end of each chunk of `chunk` steps."""
+    y0, args, vector_field = diff
+
+    def one_step(carry, n):
+        y, result, total, worst, carried = carry
+        step = method.carried_step(vector_field, t0 + n * dt, y, dt, args, carried)
+        result = first_failure(result, step.result)
+        return (step.y, result, total + step.iterations, jnp.maximum(worst, step.iterations), step.carried), None
+
+    def one_chunk(carry, first):
+        carry, _ = jax.lax.scan(one_step, carry, first + jnp.arange(chunk, dtype=jnp.int32))
+        return carry, carry[0]
+
+    def one_save(carry, first):
+        carry, kept = jax.lax.scan(one_chunk, carry, first + chunk * jnp.arange(chunks_per_save, dtype=jnp.int32))
+        return carry, kept
+
+    zero = jnp.array(0, jnp.int32)
+    init = (y0, RESULTS.successful, zero, zero, carried0)
+    save_starts = steps_done + chunks_per_save * chunk * jnp.arange(num_saves, dtype=jnp.int32)
+    (y_last, result, total, worst, carried), kept = jax.lax.scan(one_save, init, save_starts)
+    return kept, (y_last, result, total, worst, carried)
+
+
+@eqx.filter_custom_vjp
+def _run_and_undo(diff, method, undo, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk):
+    kept, (y_last, result, total, worst, carried) = _forward(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk)
+    saved = jax.tree.map(lambda x: x[:, -1], kept)
+    return saved, y_last, result, total, worst, carried
+
+
+@_run_and_undo.def_fwd
+def _run_and_undo_fwd(perturbed, diff, method, undo, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk):
+    del perturbed
+    kept, (y_last, result, total, worst, carried) = _forward(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk)
+    saved = jax.tree.map(lambda x: x[:, -1], kept)
+    return (saved, y_last, result, total, worst, carried), kept
+
+
+def _is_none(x) -> bool:
+    return x is None
+
+
+def _or_zeros(gradient, zeros):
+    """A cotangent, zeros where autodiff gives None (an output not used)."""
+    return zeros if gradient is None else gradient
+
+
+@_run_and_undo.def_bwd
+def _run_and_undo_bwd(kept, grad_out, perturbed, diff, method, undo, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk):
+    """Walk back chunk by chunk: reconstruct each state from the kept state at
+    the chunk's end by `undo`'s step of −dt, and pull the cotangent back
+    through the step's VJP there."""
+    del perturbed, carried0
+    y0, args, vector_field = diff
+    grad_saved, grad_last = grad_out[0], grad_out[1]
+    zeros_y = jax.tree.map(jnp.zeros_like, y0)
+    saved_zeros = jax.tree.map(lambda x: jnp.zeros_like(x[:, -1]), kept)
+    grad_saved = saved_zeros if grad_saved is None else jax.tree.map(_or_zeros, grad_saved, saved_zeros, is_leaf=_is_none)
+    grad_last = zeros_y if grad_last is None else jax.tree.map(_or_zeros, grad_last, zeros_y, is_leaf=_is_none)
+    params_dynamic, params_static = eqx.partition((args, vector_field), eqx.is_inexact_array)
+    params_grad0 = jax.tree.map(jnp.zeros_like, params_dynamic)
+
+    def step_vjp(y_prev, n, cotangent):
+        def forward(y, dynamic):
+            a, f = eqx.combine(dynamic, params_static)
+            return method.step(f, t0 + n * dt, y, dt, a).y
+
+        _, vjp = eqx.filter_vjp(forward, y_prev, params_dynamic)
+        return vjp(cotangent)
+
+    def back_one_step(carry, n):
+        y_next, cotangent, params_grad, undo_carried, result = carry
+        undone = undo.carried_step(vector_field, t0 + (n + 1) * dt, y_next, -dt, args, undo_carried)
+        y_prev = undone.y
+        cotangent_prev, params_step = step_vjp(y_prev, n, cotangent)
+        params_grad = jax.tree.map(lambda a, b: a + b, params_grad, params_step)
+        return (y_prev, cotangent_prev, params_grad, undone.carried, first_failure(result, undone.result)), None
+
+    def back_one_chunk(carry, inputs):
+        cotangent, params_grad, result = carry
+        y_end, first = inputs
+        undo_carried = undo.initial_carried(vector_field, t0 + (first + chunk) * dt, y_end, args)
+        steps = first + jnp.arange(chunk, dtype=jnp.int32)[::-1]
+        init = (y_end, cotangent, params_grad, undo_carried, result)
+        (_, cotangent, params_grad, _, result), _ = jax.lax.scan(back_one_step, init, steps)
+        return (cotangent, params_grad, result), None
+
+    total_chunks = num_saves * chunks_per_save
+    kept_flat = jax.tree.map(lambda x: x.reshape((total_chunks,) + x.shape[2:]), kept)
+    firsts = steps_done + chunk * jnp.arange(total_chunks, dtype=jnp.int32)
+
+    def back_chunk_with_saves(carry, inputs):
+        # The cotangent arriving at a chunk's end: the saved state's where the
+        # chunk ends a save interval (the last chunk of each), none otherwise.
+        cotangent, params_grad, result = carry
+        y_end, first, index = inputs
+        ends_a_save = (index + 1) % chunks_per_save == 0
+        save_index = index // chunks_per_save
+        incoming = jax.tree.map(lambda g: jnp.where(ends_a_save, g[save_index], jnp.zeros_like(g[save_index])), grad_saved)
+        cotangent = jax.tree.map(jnp.add, cotangent, incoming)
+        return back_one_chunk((cotangent, params_grad, result), (y_end, first))
+
+    indices = jnp.arange(total_chunks, dtype=jnp.int32)
+    init = (grad_last, params_grad0, RESULTS.successful)
+    (cotangent, params_grad, result), _ = jax.lax.scan(back_chunk_with_saves, init, (kept_flat, firsts, indices), reverse=True)
+    cotangent = result.error_if(cotangent, result != RESULTS.successful)
+    args_grad, field_grad = params_grad
+    return cotangent, args_grad, field_grad

@@ -1,0 +1,160 @@
+"""Reversible gradients (`ReversibleGradient`): equal to the gradient through
+the stored steps and to finite differences, for every family of methods
+that can be undone; memory that does not grow with the number of steps;
+closures, vmap, float32 and refusals."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import prkmk_jax as pk
+from prkmk_jax.scenes import FreeRigidBody, HeavyTop, TopParameters, random_rotation
+
+FREE, TOP = FreeRigidBody(), HeavyTop()
+INERTIA = jnp.array([7 / 8, 5 / 8, 1 / 4])
+TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
+Y0 = pk.BundleElement(pk.SO3(jnp.asarray(random_rotation(5))), jnp.array([0.25, 0.625, 0.875]))
+H = 0.05
+
+METHODS = {
+    "PRKMK SV (undone by its adjoint)": (FREE, FREE.method(pk.stormer_verlet), INERTIA),
+    "PRKMK symplectic Euler (undone by its adjoint)": (FREE, FREE.method(pk.symplectic_euler), INERTIA),
+    "Adjoint of PRKMK SV": (FREE, pk.Adjoint(FREE.method(pk.stormer_verlet)), INERTIA),
+    "Symmetrized Lobatto 4": (FREE, pk.Symmetrized(FREE.method(pk.lobatto_iiia_iiib4)), INERTIA),
+    "Composition of Symmetrized SV": (
+        FREE,
+        pk.Composition(pk.Symmetrized(FREE.method(pk.stormer_verlet)), pk.yoshida_triple_jump),
+        INERTIA,
+    ),
+    "splitting": (FREE, FREE.splitting(), INERTIA),
+    "heavy top, PRKMK SV Cayley": (TOP, TOP.method(pk.stormer_verlet, pk.Cayley()), TOP_ARGS),
+    "heavy top, splitting": (TOP, TOP.splitting(), TOP_ARGS),
+}
+
+
+def _loss(method, field, num_steps, save_every, gradient):
+    """A loss of every saved state, differentiable in y0 and the parameters."""
+
+    def loss(y0, args):
+        ys = pk.integrate(method, field, y0, 0.0, H, num_steps, args, save_every=save_every, gradient=gradient).ys
+        return jnp.sum(ys.fiber**2 * jnp.arange(1.0, 4.0)) + jnp.sum(ys.base.matrix[..., 0, :] * jnp.arange(1.0, 4.0))
+
+    return loss
+
+
+def _gradients(method, field, args, num_steps=60, save_every=20, gradient=None, y0=Y0):
+    return jax.jit(jax.grad(_loss(method, field, num_steps, save_every, gradient), argnums=(0, 1)))(y0, args)
+
+
+def _relative_gap(a, b) -> float:
+    leaves_a, leaves_b = jax.tree.leaves(a), jax.tree.leaves(b)
+    scale = max(float(jnp.max(jnp.abs(x))) for x in leaves_a)
+    return max(float(jnp.max(jnp.abs(x - y))) for x, y in zip(leaves_a, leaves_b)) / scale
+
+
+@pytest.mark.parametrize("name", METHODS)
+def test_reversible_gradient_equals_the_stored_one(name):
+    """Reconstructed from each saved state (20 steps back) and, for the first
+    two, from checkpoints every 5 steps as well."""
+    field, method, args = METHODS[name]
+    stored = _gradients(method, field, args)
+    for checkpoint_every in (None, 5) if name in list(METHODS)[:2] else (None,):
+        reversible = _gradients(method, field, args, gradient=pk.ReversibleGradient(checkpoint_every))
+        assert _relative_gap(stored, reversible) <= 1e-10, (checkpoint_every, _relative_gap(stored, reversible))
+
+
+def test_reversible_gradient_agrees_with_finite_differences():
+    """d loss / d I₁ by central differences of the forward run (no autodiff)."""
+    method = FREE.method(pk.stormer_verlet)
+    loss = jax.jit(_loss(method, FREE, 200, 200, None))
+    gradient = _gradients(method, FREE, INERTIA, 200, 200, pk.ReversibleGradient())[1]
+    eps = 1e-6
+    bump = jnp.array([eps, 0.0, 0.0])
+    finite_difference = (loss(Y0, INERTIA + bump) - loss(Y0, INERTIA - bump)) / (2 * eps)
+    np.testing.assert_allclose(gradient[0], finite_difference, rtol=1e-6)
+
+
+def test_memory_does_not_grow_with_the_number_of_steps():
+    """The compiled gradient's temporary memory (XLA's memory analysis) at
+    200 and 20 000 steps, saving the last state only: the same within 1.5×
+    reversibly, and growing with the steps through the stored steps."""
+    method = FREE.method(pk.stormer_verlet)
+
+    def temp_bytes(num_steps, gradient):
+        grad = jax.jit(jax.grad(_loss(method, FREE, num_steps, num_steps, gradient), argnums=1))
+        return grad.lower(Y0, INERTIA).compile().memory_analysis().temp_size_in_bytes
+
+    reversible = [temp_bytes(n, pk.ReversibleGradient()) for n in (200, 20_000)]
+    stored = [temp_bytes(n, None) for n in (200, 20_000)]
+    assert reversible[1] <= 1.5 * reversible[0], reversible
+    assert stored[1] >= 10 * stored[0], stored
+
+
+def test_a_closure_over_a_differentiated_parameter_is_differentiated():
+    method = pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), pk.stormer_verlet, form="body")
+
+    def loss(inertia, gradient):
+        def field(t, y, args):
+            return y.fiber / inertia, jnp.zeros(3)
+
+        final = pk.integrate(method, field, Y0, 0.0, H, 60, None, save_every=60, gradient=gradient).ys.fiber[-1]
+        return jnp.sum(final**2 * jnp.arange(1.0, 4.0))  # not the Casimir |Π|², whose gradient is 0
+
+    np.testing.assert_allclose(jax.grad(loss)(INERTIA, pk.ReversibleGradient()), jax.grad(loss)(INERTIA, None), rtol=1e-11)
+
+
+def test_a_field_module_is_differentiated():
+    class Body(eqx.Module):
+        inertia: jax.Array
+
+        def __call__(self, t, y, args):
+            return y.fiber / self.inertia, jnp.zeros(3)
+
+    method = pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), pk.stormer_verlet, form="body")
+
+    def loss(body, gradient):
+        final = pk.integrate(method, body, Y0, 0.0, H, 60, None, save_every=60, gradient=gradient).ys.fiber[-1]
+        return jnp.sum(final**2 * jnp.arange(1.0, 4.0))
+
+    stored = eqx.filter_grad(loss)(Body(INERTIA), None).inertia
+    np.testing.assert_allclose(eqx.filter_grad(loss)(Body(INERTIA), pk.ReversibleGradient()).inertia, stored, rtol=1e-11)
+
+
+def test_vmapped_over_initial_states():
+    rotations = jnp.asarray(np.stack([random_rotation(k) for k in range(4)]))
+    momenta = jnp.array([0.25, 0.625, 0.875]) * (1 + 0.1 * jnp.arange(4.0))[:, None]
+    method = FREE.method(pk.stormer_verlet)
+
+    def batch_loss(inertia, gradient):
+        def one(q, p):
+            return _loss(method, FREE, 60, 30, gradient)(pk.BundleElement(pk.SO3(q), p), inertia)
+
+        return jnp.sum(jax.vmap(one)(rotations, momenta))
+
+    stored = jax.grad(batch_loss)(INERTIA, None)
+    np.testing.assert_allclose(jax.grad(batch_loss)(INERTIA, pk.ReversibleGradient()), stored, rtol=1e-10)
+
+
+def test_float32():
+    """In float32 the reconstruction holds to float32's round-off: the
+    reversible gradient against the stored one, both in float32."""
+    method = FREE.method(pk.stormer_verlet)
+    y32, inertia32 = jax.tree.map(lambda x: x.astype(jnp.float32), Y0), INERTIA.astype(jnp.float32)
+    stored = _gradients(method, FREE, inertia32, y0=y32)
+    reversible = _gradients(method, FREE, inertia32, gradient=pk.ReversibleGradient(), y0=y32)
+    assert jax.tree.leaves(reversible)[0].dtype == jnp.float32
+    assert _relative_gap(stored, reversible) <= 1e-4
+
+
+def test_refusals():
+    not_symmetric = pk.Composition(FREE.method(pk.stormer_verlet), pk.yoshida_triple_jump)
+    with pytest.raises(TypeError, match="can be undone exactly"):
+        _gradients(not_symmetric, FREE, INERTIA, gradient=pk.ReversibleGradient())
+    with pytest.raises(ValueError, match="must divide save_every"):
+        _gradients(FREE.method(pk.stormer_verlet), FREE, INERTIA, gradient=pk.ReversibleGradient(checkpoint_every=7))
+    with pytest.raises(ValueError, match="checkpoint_every"):
+        pk.ReversibleGradient(checkpoint_every=0)
+    with pytest.raises(TypeError, match="ReversibleGradient"):
+        _gradients(FREE.method(pk.stormer_verlet), FREE, INERTIA, gradient="reversible")
