@@ -43,7 +43,7 @@ Tables:
   symplectic run.
 - `work_precision`, `long_time`, `heavy_top`, `throughput`, `stability`,
   `floor`, `against_scan`, `explicit_stages`, `root_finders`,
-  `against_revision`, `xla_codegen`: the script of the same name's results
+  `against_revision`, `gradients`, `xla_codegen`: the script of the same name's results
   file, as its function's docstring says.
 """
 
@@ -73,6 +73,7 @@ DOCUMENTS = {
         "explicit_stages",
         "root_finders",
         "against_revision",
+        "gradients",
         "xla_codegen",
     ),
     "docs/concepts/choosing.md": ("decision", "summary"),
@@ -551,6 +552,26 @@ def root_finders_table(_entries=None, root: Path | None = None) -> str:
     return _measured_on(data) + "\n\n" + _table(headers, rows)
 
 
+def gradients_table(_entries=None, root: Path | None = None) -> str:
+    """`gradients.py`: the gradient's temporary memory, its time over the
+    forward run's, and its compile time, against the number of steps."""
+    data = results_file("gradients.json", root)
+    rows = [
+        [
+            r["path"],
+            str(r["steps"]),
+            "–" if r["temp_bytes"] is None else f"{r['temp_bytes'] / 1e6:.2f}",
+            f"{r['ns_per_traj_step']['forward']:.0f}",
+            f"{r['ns_per_traj_step']['value_and_grad']:.0f}",
+            f"{r['gradient_over_forward']:.2f}",
+            f"{r['compile_s']['value_and_grad']:.1f}",
+        ]
+        for r in data["rows"]
+    ]
+    headers = ["path", "steps", "temporary memory, MB", "forward, ns", "value and gradient, ns", "gradient / forward", "compile, s"]
+    return _measured_on(data) + f" Batch {data['batch']}, h = {data['h']}.\n\n" + _table(headers, rows)
+
+
 def xla_codegen_table(_entries=None, root: Path | None = None) -> str:
     """`xla_codegen.py`: compile and run time with XLA's older CPU code
     generator over its default."""
@@ -575,6 +596,7 @@ def xla_codegen_table(_entries=None, root: Path | None = None) -> str:
 OTHER_SOURCES = (
     "stage_layout.json",
     "against_revision.json",
+    "gradients.json",
     "round_off.json",
     "work_precision.json",
     "long_time.json",
@@ -607,6 +629,7 @@ TABLES = {
     "explicit_stages": explicit_stages_table,
     "root_finders": root_finders_table,
     "against_revision": against_revision_table,
+    "gradients": gradients_table,
     "xla_codegen": xla_codegen_table,
 }
 
