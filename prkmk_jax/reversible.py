@@ -13,9 +13,12 @@ error cannot grow over more than that stretch, and the memory is that of
 the kept states, whatever the number of steps.
 """
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .made_of_steps import Adjoint
 from .method import RESULTS, AbstractMethod, first_failure
@@ -26,18 +29,30 @@ class ReversibleGradient(eqx.Module):
     """Gradients of `integrate` by reconstructing the states backwards
     (module docstring), for `integrate(..., gradient=ReversibleGradient())`.
 
-    `checkpoint_every`: keep one state every this many steps (it must divide
-    `save_every`); None keeps only the saved states, so a run that saves its
-    last state only (`save_every=num_steps`) keeps nothing else: memory
-    independent of the number of steps, and reconstruction over the whole run.
+    - `checkpoint_every`: reconstruct at most this many steps from one kept
+      state. The forward pass keeps the saved states and, between two of
+      them, one state every K steps, K the largest divisor of `save_every`
+      not above `checkpoint_every`: memory of N/K states for N steps. None
+      keeps the saved states only (with `save_every=num_steps`, memory
+      independent of N, and reconstruction over the whole run).
+    - `max_reconstruction_error`: the backward pass compares each stretch's
+      rebuilt first state with the kept one, max |Δ|/(1 + max |y|) over the
+      state's entries, and raises where the difference exceeds this (a
+      chaotic motion amplifies the rounding of the undoing steps
+      exponentially over long stretches; keep more states then). None
+      takes √ε of the state's dtype.
     """
 
-    checkpoint_every: int | None = eqx.field(static=True, default=None)
+    checkpoint_every: int | None = eqx.field(static=True, default=1000)
+    max_reconstruction_error: float | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         k = self.checkpoint_every
         if k is not None and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
             raise ValueError(f"checkpoint_every must be None or an int ≥ 1, got {k!r}.")
+        tol = self.max_reconstruction_error
+        if tol is not None and not (isinstance(tol, (int, float)) and not isinstance(tol, bool) and tol > 0):
+            raise ValueError(f"max_reconstruction_error must be None or a number > 0, got {tol!r}.")
 
 
 def undoing_method(method: AbstractMethod) -> AbstractMethod:
@@ -59,10 +74,10 @@ def undoing_method(method: AbstractMethod) -> AbstractMethod:
 
 
 def _chunk_steps(gradient: ReversibleGradient, save_every: int) -> int:
-    k = save_every if gradient.checkpoint_every is None else gradient.checkpoint_every
-    if save_every % k:
-        raise ValueError(f"checkpoint_every={k} must divide save_every={save_every}.")
-    return k
+    """The largest divisor of `save_every` not above `checkpoint_every`."""
+    if gradient.checkpoint_every is None:
+        return save_every
+    return max(k for k in range(1, min(gradient.checkpoint_every, save_every) + 1) if save_every % k == 0)
 
 
 def reversible_run(method, vector_field, y0, carried0, t0, dt, steps_done, args, num_saves, save_every, gradient):
@@ -80,8 +95,11 @@ def reversible_run(method, vector_field, y0, carried0, t0, dt, steps_done, args,
     # The carried stage slopes only start the first step's stage iteration:
     # its solution, and so the gradient, does not depend on them.
     carried0 = jax.lax.stop_gradient(carried0)
+    dtype = jnp.result_type(*jax.tree.leaves(y0))
+    tolerance = gradient.max_reconstruction_error
+    tolerance = float(np.sqrt(np.finfo(dtype).eps)) if tolerance is None else float(tolerance)
     saved, y_last, *counts = _run_and_undo(
-        (y0, args, vector_field), method, undo, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk
+        (y0, args, vector_field), method, undo, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk, tolerance
     )
     # The result, the iteration counts and the carried slopes are not
     # differentiated (the slopes only start the next run's stages).
@@ -115,14 +133,14 @@ def _forward(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_s
 
 
 @eqx.filter_custom_vjp
-def _run_and_undo(diff, method, undo, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk):
+def _run_and_undo(diff, method, undo, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk, tolerance):
     kept, (y_last, result, total, worst, carried) = _forward(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk)
     saved = jax.tree.map(lambda x: x[:, -1], kept)
     return saved, y_last, result, total, worst, carried
 
 
 @_run_and_undo.def_fwd
-def _run_and_undo_fwd(perturbed, diff, method, undo, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk):
+def _run_and_undo_fwd(perturbed, diff, method, undo, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk, tolerance):
     del perturbed
     kept, (y_last, result, total, worst, carried) = _forward(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk)
     saved = jax.tree.map(lambda x: x[:, -1], kept)
@@ -139,7 +157,9 @@ def _or_zeros(gradient, zeros):
 
 
 @_run_and_undo.def_bwd
-def _run_and_undo_bwd(kept, grad_out, perturbed, diff, method, undo, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk):
+def _run_and_undo_bwd(
+    kept, grad_out, perturbed, diff, method, undo, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk, tolerance
+):
     """Walk back chunk by chunk: reconstruct each state from the kept state at
     the chunk's end by `undo`'s step of −dt, and pull the cotangent back
     through the step's VJP there."""
@@ -170,32 +190,48 @@ def _run_and_undo_bwd(kept, grad_out, perturbed, diff, method, undo, carried0, t
         return (y_prev, cotangent_prev, params_grad, undone.carried, first_failure(result, undone.result)), None
 
     def back_one_chunk(carry, inputs):
-        cotangent, params_grad, result = carry
-        y_end, first = inputs
+        cotangent, params_grad, result, worst = carry
+        y_end, y_start, first = inputs
         undo_carried = undo.initial_carried(vector_field, t0 + (first + chunk) * dt, y_end, args)
         steps = first + jnp.arange(chunk, dtype=jnp.int32)[::-1]
         init = (y_end, cotangent, params_grad, undo_carried, result)
-        (_, cotangent, params_grad, _, result), _ = jax.lax.scan(back_one_step, init, steps)
-        return (cotangent, params_grad, result), None
+        (rebuilt, cotangent, params_grad, _, result), _ = jax.lax.scan(back_one_step, init, steps)
+        # The stretch's first state is kept too: how far the rebuilt one is from it.
+        gap = functools.reduce(jnp.maximum, [jnp.max(jnp.abs(a - b)) for a, b in zip(jax.tree.leaves(rebuilt), jax.tree.leaves(y_start))])
+        size = functools.reduce(jnp.maximum, [jnp.max(jnp.abs(b)) for b in jax.tree.leaves(y_start)])
+        return (cotangent, params_grad, result, jnp.maximum(worst, gap / (1 + size))), None
 
     total_chunks = num_saves * chunks_per_save
     kept_flat = jax.tree.map(lambda x: x.reshape((total_chunks,) + x.shape[2:]), kept)
+    # Each stretch starts where the one before ends, the first at y0.
+    starts = jax.tree.map(lambda first, later: jnp.concatenate([first[None], later[:-1]]), y0, kept_flat)
     firsts = steps_done + chunk * jnp.arange(total_chunks, dtype=jnp.int32)
 
     def back_chunk_with_saves(carry, inputs):
         # The cotangent arriving at a chunk's end: the saved state's where the
         # chunk ends a save interval (the last chunk of each), none otherwise.
-        cotangent, params_grad, result = carry
-        y_end, first, index = inputs
+        cotangent, params_grad, result, worst = carry
+        y_end, y_start, first, index = inputs
         ends_a_save = (index + 1) % chunks_per_save == 0
         save_index = index // chunks_per_save
         incoming = jax.tree.map(lambda g: jnp.where(ends_a_save, g[save_index], jnp.zeros_like(g[save_index])), grad_saved)
         cotangent = jax.tree.map(jnp.add, cotangent, incoming)
-        return back_one_chunk((cotangent, params_grad, result), (y_end, first))
+        return back_one_chunk((cotangent, params_grad, result, worst), (y_end, y_start, first))
 
     indices = jnp.arange(total_chunks, dtype=jnp.int32)
-    init = (grad_last, params_grad0, RESULTS.successful)
-    (cotangent, params_grad, result), _ = jax.lax.scan(back_chunk_with_saves, init, (kept_flat, firsts, indices), reverse=True)
-    cotangent = result.error_if(cotangent, result != RESULTS.successful)
-    args_grad, field_grad = params_grad
+    init = (grad_last, params_grad0, RESULTS.successful, jnp.zeros((), jnp.result_type(*jax.tree.leaves(y0))))
+    inputs = (kept_flat, starts, firsts, indices)
+    (cotangent, params_grad, result, worst), _ = jax.lax.scan(back_chunk_with_saves, init, inputs, reverse=True)
+    # The checks act through every gradient returned: those not asked for
+    # are dropped, with whatever they pass through.
+    grads = (cotangent, params_grad)
+    grads = result.error_if(grads, result != RESULTS.successful)
+    grads = eqx.error_if(
+        grads,
+        ~(worst <= tolerance),
+        f"ReversibleGradient: a state rebuilt by undoing steps is off the kept one by more than max_reconstruction_error = "
+        f"{tolerance:.1e} (relative); the motion amplifies the rounding over a stretch of {chunk} steps: give a smaller "
+        "checkpoint_every (or save more often).",
+    )
+    cotangent, (args_grad, field_grad) = grads
     return cotangent, args_grad, field_grad
