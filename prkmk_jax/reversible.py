@@ -132,19 +132,21 @@ def _forward(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_s
     return kept, (y_last, result, total, worst, carried)
 
 
+def _outputs_and_kept(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk):
+    kept, (y_last, result, total, worst, carried) = _forward(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk)
+    saved = jax.tree.map(lambda x: x[:, -1], kept)  # each save interval's last chunk ends at the saved state
+    return (saved, y_last, result, total, worst, carried), kept
+
+
 @eqx.filter_custom_vjp
 def _run_and_undo(diff, method, undo, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk, tolerance):
-    kept, (y_last, result, total, worst, carried) = _forward(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk)
-    saved = jax.tree.map(lambda x: x[:, -1], kept)
-    return saved, y_last, result, total, worst, carried
+    return _outputs_and_kept(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk)[0]
 
 
 @_run_and_undo.def_fwd
 def _run_and_undo_fwd(perturbed, diff, method, undo, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk, tolerance):
     del perturbed
-    kept, (y_last, result, total, worst, carried) = _forward(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk)
-    saved = jax.tree.map(lambda x: x[:, -1], kept)
-    return (saved, y_last, result, total, worst, carried), kept
+    return _outputs_and_kept(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk)
 
 
 def _is_none(x) -> bool:
