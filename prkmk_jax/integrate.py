@@ -146,6 +146,8 @@ def resume(
     than constants that the compiled function closes over: XLA may fold
     constants with another rounding (and fuse a multiply-add), and the two
     runs then differ in the last bit.
+
+    `gradient`: as in `integrate`.
     """
     _check_method(method)
     if not isinstance(continuation, Continuation):
