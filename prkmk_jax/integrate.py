@@ -8,7 +8,7 @@ from jax.core import Tracer
 from jaxtyping import Array, Float, Int, PyTree, Real
 
 from .bundles import BundleElement
-from .method import RESULTS, AbstractMethod, Time, VectorField, checked_field_args, first_failure
+from .method import RESULTS, AbstractMethod, Time, VectorField, checked_field_args, counted_start, counted_step
 from .reversible import ReversibleGradient, reversible_run
 from .step import STAGE_SLOPES_NAME
 
@@ -207,26 +207,19 @@ def _run(method, vector_field, start: Continuation, num_steps, args, save_every,
         )
         return _trajectory(start, saved, y_last, result, total, worst, carried, num_steps // save_every, save_every, throw)
 
-    def one_step(carry, n):
-        y, result, total, worst, carried = carry
-        step = method.carried_step(vector_field, t0 + n * dt, y, dt, args, carried)
-        result = first_failure(result, step.result)
-        return (step.y, result, total + step.iterations, jnp.maximum(worst, step.iterations), step.carried), None
-
     # Under reverse mode a scanned step would store every intermediate of
     # every step (hundreds of per-trajectory scalars); rematerialised, it
     # stores the state and the implicit stages' solutions only, and the
     # backward pass re-runs the explicit arithmetic (`throughput.py`
     # measures the gradient's cost).
     saved = jax.checkpoint_policies.save_only_these_names(STAGE_SLOPES_NAME)
-    step_fn = jax.checkpoint(one_step, prevent_cse=False, policy=saved)
+    step_fn = jax.checkpoint(counted_step(method, vector_field, t0, dt, args), prevent_cse=False, policy=saved)
 
     def one_save(carry, first):
         carry, _ = jax.lax.scan(step_fn, carry, first + jnp.arange(save_every, dtype=jnp.int32))
         return carry, carry[0]
 
-    zero = jnp.array(0, jnp.int32)
-    init = (start.y, RESULTS.successful, zero, zero, start.carried)
+    init = counted_start(start.y, start.carried)
     num_saves = num_steps // save_every
     save_steps = start.steps_done + save_every * jnp.arange(num_saves + 1, dtype=jnp.int32)
     (y_last, result, total, worst, carried), saved = jax.lax.scan(one_save, init, save_steps[:-1])

@@ -16,8 +16,6 @@ not. `Symmetrized(method)` is symmetric whatever the method, at the cost of
 a second, fully implicit half step.
 """
 
-import functools
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -25,7 +23,7 @@ from jaxtyping import Array, PyTree
 
 from .bundles import BundleElement
 from .compositions import CompositionCoefficients
-from .method import RESULTS, AbstractMethod, Step, VectorField, first_failure, flag_nonfinite
+from .method import RESULTS, AbstractMethod, Step, VectorField, first_failure, flag_nonfinite, largest_entry_difference
 from .splitting import Splitting
 from .step import PRKMK, static_combination
 
@@ -253,4 +251,4 @@ def symmetry_defect(
     t, dt = jnp.asarray(t), jnp.asarray(dt)
     y_forward = method.step(vector_field, t, y, dt, args).y
     y_back = method.step(vector_field, t + dt, y_forward, -dt, args).y
-    return functools.reduce(jnp.maximum, [jnp.max(jnp.abs(a - b)) for a, b in zip(jax.tree.leaves(y_back), jax.tree.leaves(y))])
+    return largest_entry_difference(y_back, y)

@@ -10,6 +10,7 @@ compositions) are the others.
 """
 
 import abc
+import functools
 from collections.abc import Callable
 from typing import Any, Literal
 
@@ -64,6 +65,32 @@ def checked_field_args(vector_field: VectorField, args: PyTree) -> PyTree:
     if isinstance(vector_field, AbstractFieldOnBundle):
         return vector_field.checked_args(args)
     return args
+
+
+def counted_step(method: "AbstractMethod", vector_field: VectorField, t0, dt, args: PyTree):
+    """The body of a fixed-step `lax.scan` over step numbers n: step n runs
+    from t0 + n·dt. The carry is `counted_start`'s: the state, the first
+    failure, the total of the implicit iterations, the most in one step, and
+    what the step carries to the next."""
+
+    def one_step(carry, n):
+        y, result, total, worst, carried = carry
+        step = method.carried_step(vector_field, t0 + n * dt, y, dt, args, carried)
+        result = first_failure(result, step.result)
+        return (step.y, result, total + step.iterations, jnp.maximum(worst, step.iterations), step.carried), None
+
+    return one_step
+
+
+def counted_start(y: BundleElement, carried: Any):
+    """The carry of `counted_step` before the first step."""
+    zero = jnp.array(0, jnp.int32)
+    return y, RESULTS.successful, zero, zero, carried
+
+
+def largest_entry_difference(a: PyTree, b: PyTree) -> Array:
+    """max |a − b| over the entries of two states (their matrices or vectors)."""
+    return functools.reduce(jnp.maximum, [jnp.max(jnp.abs(x - y)) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b))])
 
 
 def tree_scale(alpha, tree):

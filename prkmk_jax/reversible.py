@@ -13,15 +13,13 @@ error cannot grow over more than that stretch, and the memory is that of
 the kept states, whatever the number of steps.
 """
 
-import functools
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .made_of_steps import Adjoint
-from .method import RESULTS, AbstractMethod, first_failure
+from .method import RESULTS, AbstractMethod, counted_start, counted_step, first_failure, largest_entry_difference
 from .step import PRKMK
 
 
@@ -110,12 +108,7 @@ def reversible_run(method, vector_field, y0, carried0, t0, dt, steps_done, args,
 def _forward(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk):
     """Every step, keeping the state at the end of each chunk of `chunk` steps."""
     y0, args, vector_field = diff
-
-    def one_step(carry, n):
-        y, result, total, worst, carried = carry
-        step = method.carried_step(vector_field, t0 + n * dt, y, dt, args, carried)
-        result = first_failure(result, step.result)
-        return (step.y, result, total + step.iterations, jnp.maximum(worst, step.iterations), step.carried), None
+    one_step = counted_step(method, vector_field, t0, dt, args)
 
     def one_chunk(carry, first):
         carry, _ = jax.lax.scan(one_step, carry, first + jnp.arange(chunk, dtype=jnp.int32))
@@ -125,8 +118,7 @@ def _forward(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_s
         carry, kept = jax.lax.scan(one_chunk, carry, first + chunk * jnp.arange(chunks_per_save, dtype=jnp.int32))
         return carry, kept
 
-    zero = jnp.array(0, jnp.int32)
-    init = (y0, RESULTS.successful, zero, zero, carried0)
+    init = counted_start(y0, carried0)
     save_starts = steps_done + chunks_per_save * chunk * jnp.arange(num_saves, dtype=jnp.int32)
     (y_last, result, total, worst, carried), kept = jax.lax.scan(one_save, init, save_starts)
     return kept, (y_last, result, total, worst, carried)
@@ -193,37 +185,31 @@ def _run_and_undo_bwd(
 
     def back_one_chunk(carry, inputs):
         cotangent, params_grad, result, worst = carry
-        y_end, y_start, first = inputs
+        y_end, y_start, incoming, first = inputs
+        cotangent = jax.tree.map(jnp.add, cotangent, incoming)
         undo_carried = undo.initial_carried(vector_field, t0 + (first + chunk) * dt, y_end, args)
         steps = first + jnp.arange(chunk, dtype=jnp.int32)[::-1]
         init = (y_end, cotangent, params_grad, undo_carried, result)
         (rebuilt, cotangent, params_grad, _, result), _ = jax.lax.scan(back_one_step, init, steps)
         # The stretch's first state is kept too: how far the rebuilt one is from it.
-        gap = functools.reduce(jnp.maximum, [jnp.max(jnp.abs(a - b)) for a, b in zip(jax.tree.leaves(rebuilt), jax.tree.leaves(y_start))])
-        size = functools.reduce(jnp.maximum, [jnp.max(jnp.abs(b)) for b in jax.tree.leaves(y_start)])
+        gap = largest_entry_difference(rebuilt, y_start)
+        size = jnp.max(jnp.stack([jnp.max(jnp.abs(b)) for b in jax.tree.leaves(y_start)]))
         return (cotangent, params_grad, result, jnp.maximum(worst, gap / (1 + size))), None
 
     total_chunks = num_saves * chunks_per_save
-    kept_flat = jax.tree.map(lambda x: x.reshape((total_chunks,) + x.shape[2:]), kept)
+
+    def by_chunk(x):
+        return x.reshape((total_chunks,) + x.shape[2:])
+
+    kept_flat = jax.tree.map(by_chunk, kept)
     # Each stretch starts where the one before ends, the first at y0.
     starts = jax.tree.map(lambda first, later: jnp.concatenate([first[None], later[:-1]]), y0, kept_flat)
+    # The cotangent arriving at a stretch's end: the saved state's where the
+    # stretch ends a save interval (the last of each), none otherwise.
+    incoming = jax.tree.map(lambda g: by_chunk(jnp.zeros((num_saves, chunks_per_save) + g.shape[1:], g.dtype).at[:, -1].set(g)), grad_saved)
     firsts = steps_done + chunk * jnp.arange(total_chunks, dtype=jnp.int32)
-
-    def back_chunk_with_saves(carry, inputs):
-        # The cotangent arriving at a chunk's end: the saved state's where the
-        # chunk ends a save interval (the last chunk of each), none otherwise.
-        cotangent, params_grad, result, worst = carry
-        y_end, y_start, first, index = inputs
-        ends_a_save = (index + 1) % chunks_per_save == 0
-        save_index = index // chunks_per_save
-        incoming = jax.tree.map(lambda g: jnp.where(ends_a_save, g[save_index], jnp.zeros_like(g[save_index])), grad_saved)
-        cotangent = jax.tree.map(jnp.add, cotangent, incoming)
-        return back_one_chunk((cotangent, params_grad, result, worst), (y_end, y_start, first))
-
-    indices = jnp.arange(total_chunks, dtype=jnp.int32)
     init = (grad_last, params_grad0, RESULTS.successful, jnp.zeros((), jnp.result_type(*jax.tree.leaves(y0))))
-    inputs = (kept_flat, starts, firsts, indices)
-    (cotangent, params_grad, result, worst), _ = jax.lax.scan(back_chunk_with_saves, init, inputs, reverse=True)
+    (cotangent, params_grad, result, worst), _ = jax.lax.scan(back_one_chunk, init, (kept_flat, starts, incoming, firsts), reverse=True)
     # The checks act through every gradient returned: those not asked for
     # are dropped, with whatever they pass through.
     grads = (cotangent, params_grad)
