@@ -8,8 +8,8 @@ inertia, by `jax.value_and_grad` of
 - `integrate`, through the stored steps (`gradient=None`),
 - `integrate` with `ReversibleGradient(checkpoint_every=None)` (the states
   rebuilt backwards from the last one, the only state kept; the SV step is
-  undone by its adjoint), and with a `Splitting` (symmetric: undone by its
-  own step of −h),
+  undone by its adjoint), and with a `Splitting` (undone and differentiated
+  sub-flow by sub-flow, `Splitting.reverse_step`),
 - `diffeqsolve(PRKMKSolver)` with diffrax's `RecursiveCheckpointAdjoint`.
 
 For each: the compiled program's temporary memory (XLA's memory analysis),

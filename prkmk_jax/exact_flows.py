@@ -56,11 +56,11 @@ def is_vectorised(batch_shape: tuple[int, ...]) -> bool:
     return math.prod(batch_shape) >= VECTORISED_BATCH
 
 
-def rotation_sine_cosine(coordinates: AbstractCoordinates, angle: Array) -> tuple[Array, Array]:
+def rotation_sine_cosine(coordinates: AbstractCoordinates, angle: Array, vectorised: bool) -> tuple[Array, Array]:
     """(sin, cos) of the planar rotation that the coordinate map gives the
     algebra element `angle`·eᵢ (`AbstractCoordinates.planar_rotation`): the
     exponential turns by `angle`, the Cayley map by 2·atan(angle/2)."""
-    return coordinates.planar_rotation(angle, vectorised=is_vectorised(jnp.shape(angle)))
+    return coordinates.planar_rotation(angle, vectorised=vectorised)
 
 
 def rotated_rows(z: Packed, pairs: tuple[tuple[int, int], ...], sine: Array, cosine: Array) -> Packed:
@@ -76,6 +76,14 @@ def rotated_rows(z: Packed, pairs: tuple[tuple[int, int], ...], sine: Array, cos
 class AbstractExactFlow(eqx.Module):
     """One part of a split vector field and its flow."""
 
+    @property
+    @abc.abstractmethod
+    def reads_unmoved_rows_only(self) -> bool:
+        """Whether `coefficients` reads only rows of z that the flow leaves
+        unchanged (then not only its value but its derivative is the same at
+        the flow's start and end, and `Splitting.reverse_step` evaluates it
+        once)."""
+
     always_materialised: eqx.AbstractClassVar[bool]
     """Whether `Splitting` has XLA compute this flow's result once even for a
     few trajectories: a flow of cheap arithmetic alone would otherwise be
@@ -83,10 +91,31 @@ class AbstractExactFlow(eqx.Module):
     `VECTORISED_BATCH`)."""
 
     @abc.abstractmethod
+    def coefficients(self, coordinates: AbstractCoordinates, t: Array, z: Packed, h: Array, args: PyTree, vectorised: bool) -> PyTree:
+        """What the flow over time `h` (either sign) does to `z`, the part
+        evaluated at time `t` (a part that depends on time is frozen there);
+        `vectorised`: compute sines with arithmetic XLA vectorises
+        (`VECTORISED_BATCH`). Its value must be the same at the flow's start
+        and at its end (computed from what the flow conserves), so that a
+        sub-step can be undone from its end (`Splitting.reverse_step`)."""
+
+    @abc.abstractmethod
+    def moved(self, z: Packed, coefficients: PyTree) -> Packed:
+        """`z` moved by the flow that `coefficients` describe."""
+
+    @abc.abstractmethod
+    def moved_back(self, z: Packed, coefficients: PyTree) -> Packed:
+        """The inverse of `moved` for the same coefficients."""
+
+    @abc.abstractmethod
+    def pulled_back(self, z: Packed, coefficients: PyTree, cotangent: Packed) -> tuple[Packed, PyTree]:
+        """The VJP of `moved` at (z, coefficients): the cotangents of z and of
+        the coefficients for a cotangent of the moved state."""
+
     def flow(self, coordinates: AbstractCoordinates, t: Array, z: Packed, h: Array, args: PyTree) -> Packed:
         """The state `z` moved by the part's flow over time `h` (either sign),
-        the part evaluated at time `t` (a part that depends on time is frozen
-        there)."""
+        the part evaluated at time `t`."""
+        return self.moved(z, self.coefficients(coordinates, t, z, h, args, is_vectorised(z.shape[1:])))
 
 
 class AxisRotation(AbstractExactFlow):
@@ -102,14 +131,37 @@ class AxisRotation(AbstractExactFlow):
     about `axis` and the momentum's components."""
     rate: Callable[[Packed, PyTree], Array]
     """(z, args) ↦ the angular rate about `axis`, shape (*batch,)."""
+    rate_reads_turned_rows: bool = eqx.field(static=True, default=False)
+    """Whether `rate` reads rows in `pairs` (its value is still constant
+    along the flow, as for a body whose rate is a component of QᵀP − PᵀQ)."""
+
+    @property
+    def reads_unmoved_rows_only(self) -> bool:
+        return not self.rate_reads_turned_rows
 
     def __check_init__(self):
         if self.axis not in (0, 1, 2):
             raise ValueError(f"axis must be 0, 1 or 2, got {self.axis!r}.")
 
-    def flow(self, coordinates, t, z, h, args):
-        sine, cosine = rotation_sine_cosine(coordinates, h * self.rate(z, args))
+    def coefficients(self, coordinates, t, z, h, args, vectorised):
+        """(sin, cos) of the angle turned (`rotation_sine_cosine`)."""
+        return rotation_sine_cosine(coordinates, h * self.rate(z, args), vectorised)
+
+    def moved(self, z, coefficients):
+        sine, cosine = coefficients
         return rotated_rows(z, self.pairs, sine, cosine)
+
+    def moved_back(self, z, coefficients):
+        sine, cosine = coefficients
+        return rotated_rows(z, self.pairs, -sine, cosine)
+
+    def pulled_back(self, z, coefficients, cotangent):
+        # (a, b) ↦ (c a + s b, c b − s a) is a rotation: its transpose is the
+        # inverse, and its derivatives in s and c read the rows it turns.
+        sine, cosine = coefficients
+        cotangent_sine = sum(cotangent[j] * z[k] - cotangent[k] * z[j] for j, k in self.pairs)
+        cotangent_cosine = sum(cotangent[j] * z[j] + cotangent[k] * z[k] for j, k in self.pairs)
+        return rotated_rows(cotangent, self.pairs, -sine, cosine), (cotangent_sine, cotangent_cosine)
 
 
 class MomentumKick(AbstractExactFlow):
@@ -123,10 +175,26 @@ class MomentumKick(AbstractExactFlow):
     """(t, z, args) ↦ the body torque, shape (len(rows), *batch); it must not
     read the rows it moves."""
 
-    def flow(self, coordinates, t, z, h, args):
-        torque = self.torque(t, z, args)
-        moved = {row: z[row] + h * torque[k] for k, row in enumerate(self.rows)}
-        return jnp.stack([moved.get(r, z[r]) for r in range(z.shape[0])])
+    @property
+    def reads_unmoved_rows_only(self) -> bool:
+        return True  # `torque` must not read the rows it moves
+
+    def coefficients(self, coordinates, t, z, h, args, vectorised):
+        """The change of the momentum rows, h·torque, shape (len(rows), *batch)."""
+        return h * self.torque(t, z, args)
+
+    def moved(self, z, coefficients):
+        return self._with_momentum_change(z, coefficients)
+
+    def moved_back(self, z, coefficients):
+        return self._with_momentum_change(z, -coefficients)
+
+    def pulled_back(self, z, coefficients, cotangent):
+        return cotangent, jnp.stack([cotangent[row] for row in self.rows])
+
+    def _with_momentum_change(self, z, change):
+        rows = {row: z[row] + change[k] for k, row in enumerate(self.rows)}
+        return jnp.stack([rows.get(r, z[r]) for r in range(z.shape[0])])
 
 
 class AbstractSplitScene(AbstractFieldOnBundle):

@@ -19,7 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .made_of_steps import Adjoint
-from .method import RESULTS, AbstractMethod, counted_start, counted_step, first_failure, largest_entry_difference
+from .method import LOW_PRECISION_EPS, RESULTS, AbstractMethod, counted_start, counted_step, first_failure, largest_entry_difference
+from .splitting import Splitting
 from .step import PRKMK
 
 
@@ -165,6 +166,8 @@ def _run_and_undo_bwd(
     grad_saved = saved_zeros if grad_saved is None else jax.tree.map(_or_zeros, grad_saved, saved_zeros, is_leaf=_is_none)
     grad_last = zeros_y if grad_last is None else jax.tree.map(_or_zeros, grad_last, zeros_y, is_leaf=_is_none)
     params_dynamic, params_static = eqx.partition((args, vector_field), eqx.is_inexact_array)
+    dtype = jnp.result_type(*jax.tree.leaves(y0))
+    sub_step_by_sub_step = isinstance(method, Splitting) and jnp.finfo(dtype).eps <= LOW_PRECISION_EPS
     params_grad0 = jax.tree.map(jnp.zeros_like, params_dynamic)
 
     def step_vjp(y_prev, n, cotangent):
@@ -177,11 +180,16 @@ def _run_and_undo_bwd(
 
     def back_one_step(carry, n):
         y_next, cotangent, params_grad, undo_carried, result = carry
-        undone = undo.carried_step(vector_field, t0 + (n + 1) * dt, y_next, -dt, args, undo_carried)
-        y_prev = undone.y
-        cotangent_prev, params_step = step_vjp(y_prev, n, cotangent)
+        if sub_step_by_sub_step:
+            # Undone and differentiated from its end, each sub-flow once.
+            y_prev, cotangent_prev, args_step = method.reverse_step(t0 + n * dt, y_next, dt, args, cotangent)
+            params_step = (args_step, jax.tree.map(jnp.zeros_like, params_dynamic[1]))
+        else:
+            undone = undo.carried_step(vector_field, t0 + (n + 1) * dt, y_next, -dt, args, undo_carried)
+            y_prev, undo_carried, result = undone.y, undone.carried, first_failure(result, undone.result)
+            cotangent_prev, params_step = step_vjp(y_prev, n, cotangent)
         params_grad = jax.tree.map(lambda a, b: a + b, params_grad, params_step)
-        return (y_prev, cotangent_prev, params_grad, undone.carried, first_failure(result, undone.result)), None
+        return (y_prev, cotangent_prev, params_grad, undo_carried, result), None
 
     def back_one_chunk(carry, inputs):
         cotangent, params_grad, result, worst = carry

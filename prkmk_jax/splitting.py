@@ -164,3 +164,54 @@ class Splitting(AbstractMethod):
         field_now = self.generator(vector_field, t, y, args)
         result = flag_nonfinite(RESULTS.successful, y_next)
         return Step(y_next, self.increment_between(y, y_next), result, jnp.array(0, jnp.int32), field_now)
+
+    def reverse_step(self, t: Time, y_next: BundleElement, dt: Time, args: PyTree, cotangent: BundleElement):
+        """The step from t to t + dt that ended at `y_next` undone, and a
+        cotangent at its end pulled back through it: (y, the cotangent at y,
+        the cotangent of `args`). Sub-step by sub-step from the last: each
+        flow's coefficients are computed at its end (they read rows the flow
+        leaves unchanged, `AbstractExactFlow.coefficients`), undo it and give
+        its VJP there, so no sub-step is recomputed from its start. In float64
+        this is the exact inverse and VJP of `step` to round-off; in low
+        precision the step's renormalisation onto the group has no inverse,
+        and this raises `ValueError` (undo by `step` of −dt and differentiate
+        `step` instead)."""
+        dtype = jnp.result_type(*jax.tree.leaves(y_next))
+        if jnp.finfo(dtype).eps > LOW_PRECISION_EPS:
+            raise ValueError(f"reverse_step needs a dtype with machine epsilon at most {LOW_PRECISION_EPS:g}, got {dtype}.")
+        t, dt = jnp.asarray(t, dtype), jnp.asarray(dt, dtype)
+        fractions = (1.0,) if self.coefficients is None else self.coefficients.fractions
+        plan = sub_steps(len(self.scene.exact_flows(args)), fractions, merge=self.coordinates.maps_lines_to_subgroups)
+        z = self.scene.pack(y_next, args)
+        _, pull_unpack = jax.vjp(lambda z: self.scene.unpack(z, y_next, args), z)
+        (cotangent_z,) = pull_unpack(cotangent)
+        args_dynamic, args_static = eqx.partition(args, eqx.is_inexact_array)
+        cotangent_args = jax.tree.map(jnp.zeros_like, args_dynamic)
+        for part, start, step in reversed(plan):
+
+            def coefficients(z, args_dynamic, part=part, start=start, step=step):
+                args = eqx.combine(args_dynamic, args_static)
+                flow = self.scene.exact_flows(args)[part]
+                # Sines by arithmetic at any batch: each feeds several fused
+                # consumers here, and XLA recomputes its own sine in each.
+                return flow.coefficients(self.coordinates, t + start * dt, z, step * dt, args, vectorised=True)
+
+            flow = self.scene.exact_flows(args)[part]
+            if flow.reads_unmoved_rows_only:
+                # The coefficients and their derivatives are the same at the
+                # sub-step's end as at its start: computed once.
+                c, pull_coefficients = jax.vjp(coefficients, z, args_dynamic)
+                z = flow.moved_back(z, c)
+            else:
+                z = flow.moved_back(z, coefficients(z, args_dynamic))
+                c, pull_coefficients = jax.vjp(coefficients, z, args_dynamic)
+            cotangent_moved, cotangent_c = flow.pulled_back(z, c, cotangent_z)
+            cotangent_read, cotangent_args_part = pull_coefficients(cotangent_c)
+            cotangent_z = cotangent_moved + cotangent_read
+            cotangent_args = jax.tree.map(jnp.add, cotangent_args, cotangent_args_part)
+            if is_vectorised(z.shape[1:]) or flow.always_materialised:
+                z, cotangent_z = jax.lax.optimization_barrier((z, cotangent_z))
+        y = self.scene.unpack(z, y_next, args)
+        _, pull_pack = jax.vjp(lambda y: self.scene.pack(y, args), y)
+        (cotangent_y,) = pull_pack(cotangent_z)
+        return y, cotangent_y, cotangent_args

@@ -3,6 +3,7 @@ group's own exponential, empirical orders against DOP853, symmetry, what
 they keep over long runs, gradients, batches, float32 and refusals."""
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -239,6 +240,65 @@ def test_a_batch_in_the_state_and_vmap_give_the_single_runs(name, batch):
         single = final(jax.tree.map(lambda a: a[k], ys))
         assert max_leaf_difference(jax.tree.map(lambda a: a[:, k], batched), single) < 1e-13
         assert max_leaf_difference(jax.tree.map(lambda a: a[k], mapped), single) < 1e-13
+
+
+REVERSE_VARIANTS = {  # name: (coefficients, coordinates)
+    "Strang": (None, pk.Exp()),
+    "Cayley": (None, pk.Cayley()),
+    "Kahan–Li 6": (pk.kahan_li_6, pk.Exp()),
+}
+
+
+@pytest.mark.parametrize(
+    "name, variant, batch",
+    [(name, "Strang", batch) for name in CASES for batch in (1, pk.exact_flows.VECTORISED_BATCH)]
+    + [(name, variant, 3) for name in ("free body", "heavy top", "symmetric body") for variant in ("Cayley", "Kahan–Li 6")],
+)
+def test_reverse_step_undoes_the_step_and_gives_its_vjp(name, variant, batch):
+    """`Splitting.reverse_step` from a step's end: the step's start (to
+    round-off) and `jax.vjp` of the step there, for a random cotangent."""
+    scene, y0, args = CASES[name]
+    coefficients, coordinates = REVERSE_VARIANTS[variant]
+    method = pk.Splitting(scene, coefficients, coordinates)
+    turns = jnp.asarray(np.stack([random_rotation(20 + k) for k in range(batch)]))
+    ys = jax.tree.map(lambda a: jnp.broadcast_to(a, (batch, *a.shape)), y0)
+    ys = pk.BundleElement(type(y0.base)(turns @ ys.base.matrix), ys.fiber)
+    t, dt = 0.3, 0.05
+    y1, pull = eqx.filter_vjp(lambda y, a: method.step(scene, t, y, dt, a).y, ys, args)
+    leaves, structure = jax.tree.flatten(y1)
+    keys = jax.random.split(jax.random.key(0), len(leaves))
+    cotangent = jax.tree.unflatten(structure, [jax.random.normal(k, x.shape) for k, x in zip(keys, leaves)])
+    expected_y, expected_args = pull(cotangent)
+    start, cotangent_y, cotangent_args = jax.jit(method.reverse_step)(t, y1, dt, args, cotangent)
+    assert max_leaf_difference(start, ys) < 1e-14
+    scale = max(float(jnp.max(jnp.abs(x))) for x in jax.tree.leaves((expected_y, expected_args)))
+    assert max_leaf_difference(cotangent_y, expected_y) < 1e-13 * scale
+    assert max_leaf_difference(cotangent_args, expected_args) < 1e-13 * scale
+
+
+@pytest.mark.parametrize("name", ["free body", "heavy top", "forced body", "symmetric body"])
+def test_each_part_declares_whether_it_reads_the_rows_it_moves(name):
+    """`reads_unmoved_rows_only` against the rows each flow moves and the rows
+    its coefficients depend on (their Jacobian), both ways: a part that
+    claims it is right, and one that does not claim it needs not to."""
+    scene, y0, args = CASES[name]
+    z, t = scene.pack(y0, args), jnp.asarray(0.7)
+    for part in scene.exact_flows(args):
+
+        def coefficients(z, part=part):
+            return part.coefficients(pk.Exp(), t, z, jnp.asarray(0.3), args, False)
+
+        moved_rows = np.any(np.asarray(part.moved(z, coefficients(z))) != np.asarray(z), axis=tuple(range(1, z.ndim)))
+        jacobians = jax.tree.leaves(jax.jacobian(coefficients)(z))
+        read_rows = np.any(np.stack([np.any(np.asarray(j) != 0, axis=tuple(range(j.ndim - z.ndim))) for j in jacobians]), axis=0)
+        assert moved_rows.any()
+        assert part.reads_unmoved_rows_only == (not np.any(moved_rows & read_rows)), type(part).__name__
+
+
+def test_reverse_step_refuses_low_precision():
+    y32 = jax.tree.map(lambda a: a.astype(jnp.float32), _state(0))
+    with pytest.raises(ValueError, match="machine epsilon"):
+        FREE.splitting().reverse_step(0.0, y32, 0.1, INERTIA.astype(jnp.float32), y32)
 
 
 def test_float32():

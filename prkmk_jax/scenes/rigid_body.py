@@ -360,7 +360,7 @@ class SymmetricRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
             return lambda z, args: (entry(z, k, j) - entry(z, j, k)) / ordered[..., axis]
 
         pairs = [exact_flows.column_pairs(axis, 0) + exact_flows.column_pairs(axis, 9) for axis in range(3)]
-        return tuple(exact_flows.AxisRotation(axis, pair, rate(axis)) for axis, pair in zip(range(3), pairs))
+        return tuple(exact_flows.AxisRotation(axis, pair, rate(axis), rate_reads_turned_rows=True) for axis, pair in zip(range(3), pairs))
 
     def pack(self, y, inertia):
         q, p = rotation_matrix(y.base), rotation_matrix(y.fiber)
