@@ -1,26 +1,49 @@
-"""Gradient memory and time against the number of steps.
+"""Gradient memory and time against the number of steps, up to a fit's
+gradient over more steps than stored steps could hold.
 
 The free body on T*SO(3) (body form, h = 0.01, the paper's inertia, a batch
-of random attitudes), Störmer–Verlet. The loss is a weighted sum of the
-final momenta and attitudes; its gradient is taken with respect to the
-inertia, by `jax.value_and_grad` of
+of random attitudes). The loss is a weighted sum of the final momenta and
+attitudes; its gradient is taken with respect to the inertia, by
+`jax.value_and_grad` of
 
-- `integrate`, through the stored steps (`gradient=None`),
-- `integrate` with `ReversibleGradient(checkpoint_every=None)` (the states
-  rebuilt backwards from the last one, the only state kept; the SV step is
-  undone by its adjoint), and with a `Splitting` (undone and differentiated
-  sub-flow by sub-flow, `Splitting.reverse_step`),
-- `diffeqsolve(PRKMKSolver)` with diffrax's `RecursiveCheckpointAdjoint`.
+- `integrate` with Störmer–Verlet, through the stored steps (`gradient=None`)
+  and with `ReversibleGradient(checkpoint_every=None)` (the states rebuilt
+  backwards from the last one, the only state kept; the SV step undone by
+  its adjoint);
+- `integrate` with the Strang `Splitting`, through the stored steps and with
+  `ReversibleGradient(checkpoint_every=None)` (undone and differentiated
+  sub-flow by sub-flow, `Splitting.reverse_step`);
+- `diffeqsolve(PRKMKSolver(SV))` with diffrax's `RecursiveCheckpointAdjoint`
+  and with `ReversibleAdjoint` (rebuilt from the last state, as above).
 
-For each: the compiled program's temporary memory (XLA's memory analysis),
-the compile time, and the time of `value_and_grad` over the time of the
-forward run alone, interleaved (the same number of steps and batch).
+At 10⁶ steps the stored splitting and `ReversibleAdjoint` are left out (the
+rows below show how they scale), to keep the run short.
+
+The batch is vmapped, as a user maps a single-trajectory loss. Each case
+runs in a process of its own, which reports
+
+- the compiled gradient's temporary memory (XLA's memory analysis);
+- the process's peak resident memory (the operating system's maximum RSS)
+  after compiling both programs, after the forward run and after the
+  gradient: what a run adds shows only where it exceeds the compiler's
+  peak;
+- compile times, and the forward and gradient times, interleaved over the
+  rounds (one round at the largest number of steps: the first run after an
+  ahead-of-time compile).
+
+Last, the scale of a fit: `value_and_grad` of a batch of 1024 trajectories
+(the batch in the state, one run of all of them) over 10⁶ steps with the
+splitting and `ReversibleGradient()` (a state kept every 1000 steps). Its
+stored steps would need 1024 × 10⁶ × 96 bytes ≈ 98 GB.
 
     python benchmarks/gradients.py
     python benchmarks/gradients.py --quick
 """
 
 import json
+import resource
+import subprocess
+import sys
 import time
 
 import diffrax
@@ -31,89 +54,131 @@ import _common as C
 import prkmk_jax as pk
 
 H = 0.01
+PATHS = (
+    "integrate, stored steps",
+    "integrate, ReversibleGradient",
+    "splitting, stored steps",
+    "splitting, ReversibleGradient",
+    "diffeqsolve, RecursiveCheckpointAdjoint",
+    "diffeqsolve, ReversibleAdjoint",
+)
+FIT = "fit scale: splitting, ReversibleGradient, batch in the state"
 
 
-def _loss_of(final_state):
+def _final_state(path, steps):
+    scene = C.SCENE
+    method = scene.splitting() if path.startswith("splitting") else scene.method(pk.stormer_verlet)
+    if path.startswith("diffeqsolve"):
+
+        def through_diffeqsolve(q0, pi0, inertia):
+            y0 = pk.BundleElement(pk.SO3(q0), pi0)
+            term, solver = pk.PRKMKTerm(scene), pk.PRKMKSolver(method)
+            adjoint = pk.ReversibleAdjoint() if path.endswith("ReversibleAdjoint") else diffrax.RecursiveCheckpointAdjoint()
+            sol = diffrax.diffeqsolve(term, solver, 0.0, steps * H, H, y0, inertia, max_steps=steps, adjoint=adjoint)
+            return sol.ys.base.matrix[-1], sol.ys.fiber[-1]
+
+        return through_diffeqsolve
+    gradient = pk.ReversibleGradient(checkpoint_every=None) if path.endswith("ReversibleGradient") else None
+
+    def through_integrate(q0, pi0, inertia):
+        y0 = pk.BundleElement(pk.SO3(q0), pi0)
+        y = pk.integrate(method, scene, y0, 0.0, H, steps, inertia, save_every=steps, gradient=gradient).ys
+        return y.base.matrix[-1], y.fiber[-1]
+
+    return through_integrate
+
+
+def _weighted(q, pi):
+    return jnp.sum(q[..., 0, :] * jnp.arange(1.0, 4.0)) + jnp.sum(pi**2 * jnp.arange(1.0, 4.0))
+
+
+def _loss(path, steps):
+    if path == FIT:
+        method, gradient = C.SCENE.splitting(), pk.ReversibleGradient()
+
+        def loss_of_batch_in_state(qs, pis, inertia):
+            y0 = pk.BundleElement(pk.SO3(qs), pis)
+            y = pk.integrate(method, C.SCENE, y0, 0.0, H, steps, inertia, save_every=steps, gradient=gradient).ys
+            return _weighted(y.base.matrix[-1], y.fiber[-1])
+
+        return loss_of_batch_in_state
+    final_state = _final_state(path, steps)
+
     def loss(qs, pis, inertia):
-        q, pi = jax.vmap(final_state, in_axes=(0, 0, None))(qs, pis, inertia)
-        return jnp.sum(q[..., 0, :] * jnp.arange(1.0, 4.0)) + jnp.sum(pi**2 * jnp.arange(1.0, 4.0))
+        return _weighted(*jax.vmap(final_state, in_axes=(0, 0, None))(qs, pis, inertia))
 
     return loss
 
 
-def _cases(steps):
-    scene = C.SCENE
-    verlet, splitting = scene.method(pk.stormer_verlet), scene.splitting()
-
-    def through_integrate(method, gradient):
-        def final_state(q0, pi0, inertia):
-            y0 = pk.BundleElement(pk.SO3(q0), pi0)
-            y = pk.integrate(method, scene, y0, 0.0, H, steps, inertia, save_every=steps, gradient=gradient).ys
-            return y.base.matrix[-1], y.fiber[-1]
-
-        return final_state
-
-    def through_diffeqsolve(q0, pi0, inertia):
-        y0 = pk.BundleElement(pk.SO3(q0), pi0)
-        sol = diffrax.diffeqsolve(
-            pk.PRKMKTerm(scene),
-            pk.PRKMKSolver(verlet),
-            0.0,
-            steps * H,
-            H,
-            y0,
-            inertia,
-            max_steps=steps,
-            adjoint=diffrax.RecursiveCheckpointAdjoint(),
-        )
-        return sol.ys.base.matrix[-1], sol.ys.fiber[-1]
-
-    return {
-        "integrate, stored steps": through_integrate(verlet, None),
-        "integrate, ReversibleGradient": through_integrate(verlet, pk.ReversibleGradient(checkpoint_every=None)),
-        "splitting, ReversibleGradient": through_integrate(splitting, pk.ReversibleGradient(checkpoint_every=None)),
-        "diffeqsolve, RecursiveCheckpointAdjoint": through_diffeqsolve,
-    }
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3  # kilobytes on Linux
 
 
-def measure(name, final_state, batch, steps, rounds):
+def measure(path, batch, steps, rounds):
+    """One case, in this process (the child's job)."""
     qs, pis = C.initial_conditions(batch, seed=4)
     args = (jnp.asarray(qs), jnp.asarray(pis), jnp.asarray(C.INERTIA))
-    loss = _loss_of(final_state)
+    loss = _loss(path, steps)
     fns = {"forward": loss, "value_and_grad": jax.value_and_grad(loss, argnums=2)}
-    compiled, compile_s, _ = C.compile_all(fns, *args)
+    compiled, compile_s, first, rss = {}, {}, {}, {}
+    for name, fn in fns.items():
+        compiled[name], compile_s[name] = C.compile_fn(fn, *args)
+    rss["compiled"] = _peak_rss_mb()
+    for name, fn in compiled.items():
+        start = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        first[name] = [time.perf_counter() - start]
+        rss[name] = _peak_rss_mb()
     memory = compiled["value_and_grad"].memory_analysis()
-    times = C.interleaved_times(compiled, *args, rounds=rounds)
+    times = C.interleaved_times(compiled, *args, rounds=rounds) if rounds else first
     return dict(
-        path=name,
+        path=path,
         batch=batch,
         steps=steps,
+        rounds=max(rounds, 1),
         temp_bytes=int(memory.temp_size_in_bytes) if memory is not None else None,
+        peak_rss_mb=rss,
         compile_s=compile_s,
         ns_per_traj_step=C.ns_per_trajectory_step(times, batch, steps),
         gradient_over_forward=C.median_ratio(times, "value_and_grad", "forward"),
     )
 
 
+def _in_child(path, batch, steps, rounds):
+    """`measure` in a fresh process: its peak memory is this case's alone."""
+    case = json.dumps(dict(path=path, batch=batch, steps=steps, rounds=rounds))
+    done = subprocess.run([sys.executable, __file__, "--case", case], check=True, capture_output=True, text=True)
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
 def main(argv=None):
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["--case"]:
+        jax.config.update("jax_enable_x64", True)
+        print(json.dumps(measure(**json.loads(argv[1]))))
+        return
     args, out = C.cli(__doc__, argv)
     if args.quick:
-        grid, batch, rounds = (20,), 4, 2
+        grid, batch, fit = ((20, 2),), 4, (8, 20)
     else:
-        grid, batch, rounds = (1_000, 10_000, 100_000), 64, 5
+        grid, batch, fit = ((1_000, 5), (10_000, 3), (100_000, 2), (1_000_000, 0)), 64, (1024, 1_000_000)
     rows = []
-    print(f"{'path':42s} {'steps':>7s} {'temp MB':>9s} {'grad/fwd':>8s} {'compile s':>9s}")
-    for steps in grid:
-        for name, final_state in _cases(steps).items():
-            start = time.perf_counter()
-            row = measure(name, final_state, batch, steps, rounds)
-            rows.append(row)
-            temp = "–" if row["temp_bytes"] is None else f"{row['temp_bytes'] / 1e6:.2f}"
-            print(
-                f"{name:42s} {steps:7d} {temp:>9s} {row['gradient_over_forward']:8.2f} {row['compile_s']['value_and_grad']:9.2f}"
-                f"   ({time.perf_counter() - start:.0f} s)",
-                flush=True,
-            )
+    print(f"{'path':62s} {'steps':>8s} {'temp MB':>9s} {'RSS MB':>15s} {'grad/fwd':>8s} {'compile s':>9s}")
+    cases = [(path, batch, steps, rounds) for steps, rounds in grid for path in PATHS]
+    left_out = ("splitting, stored steps", "diffeqsolve, ReversibleAdjoint")
+    cases = [c for c in cases if not (c[2] >= 1_000_000 and c[0] in left_out)]
+    cases.append((FIT, fit[0], fit[1], 0))
+    for path, b, steps, rounds in cases:
+        start = time.perf_counter()
+        row = _in_child(path, b, steps, rounds)
+        rows.append(row)
+        temp = "–" if row["temp_bytes"] is None else f"{row['temp_bytes'] / 1e6:.2f}"
+        rss = "/".join(f"{row['peak_rss_mb'][k]:.0f}" for k in ("compiled", "forward", "value_and_grad"))
+        print(
+            f"{path:62s} {steps:8d} {temp:>9s} {rss:>15s} {row['gradient_over_forward']:8.2f} "
+            f"{row['compile_s']['value_and_grad']:9.2f}   ({time.perf_counter() - start:.0f} s)",
+            flush=True,
+        )
     with open(out / "gradients.json", "w") as f:
         json.dump(dict(machine=C.machine(), batch=batch, h=H, rows=rows), f, indent=1)
 

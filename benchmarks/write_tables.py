@@ -553,23 +553,42 @@ def root_finders_table(_entries=None, root: Path | None = None) -> str:
 
 
 def gradients_table(_entries=None, root: Path | None = None) -> str:
-    """`gradients.py`: the gradient's temporary memory, its time over the
-    forward run's, and its compile time, against the number of steps."""
+    """`gradients.py`: the gradient's temporary memory, the process's peak
+    memory, its time over the forward run's, and its compile time, against
+    the number of steps."""
     data = results_file("gradients.json", root)
     rows = [
         [
             r["path"],
-            str(r["steps"]),
+            str(r["batch"]),
+            f"{r['steps']:.0e}".replace("e+0", "e"),
             "–" if r["temp_bytes"] is None else f"{r['temp_bytes'] / 1e6:.2f}",
+            f"{r['peak_rss_mb']['compiled']:.0f}",
+            f"{r['peak_rss_mb']['forward']:.0f}",
+            f"{r['peak_rss_mb']['value_and_grad']:.0f}",
             f"{r['ns_per_traj_step']['forward']:.0f}",
             f"{r['ns_per_traj_step']['value_and_grad']:.0f}",
             f"{r['gradient_over_forward']:.2f}",
             f"{r['compile_s']['value_and_grad']:.1f}",
+            str(r["rounds"]),
         ]
         for r in data["rows"]
     ]
-    headers = ["path", "steps", "temporary memory, MB", "forward, ns", "value and gradient, ns", "gradient / forward", "compile, s"]
-    return _measured_on(data) + f" Batch {data['batch']}, h = {data['h']}.\n\n" + _table(headers, rows)
+    headers = [
+        "path",
+        "batch",
+        "steps",
+        "temporary memory, MB",
+        "peak RSS compiled, MB",
+        "peak RSS forward, MB",
+        "peak RSS with gradient, MB",
+        "forward, ns",
+        "value and gradient, ns",
+        "gradient / forward",
+        "compile, s",
+        "rounds",
+    ]
+    return _measured_on(data) + f" h = {data['h']}; ns per trajectory-step.\n\n" + _table(headers, rows)
 
 
 def xla_codegen_table(_entries=None, root: Path | None = None) -> str:

@@ -13,6 +13,7 @@ error cannot grow over more than that stretch, and the memory is that of
 the kept states, whatever the number of steps.
 """
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -20,6 +21,7 @@ import numpy as np
 
 from .made_of_steps import Adjoint
 from .method import LOW_PRECISION_EPS, RESULTS, AbstractMethod, counted_start, counted_step, first_failure, largest_entry_difference
+from .solver import PRKMKSolver, _user_clock
 from .splitting import Splitting
 from .step import PRKMK
 
@@ -94,9 +96,7 @@ def reversible_run(method, vector_field, y0, carried0, t0, dt, steps_done, args,
     # The carried stage slopes only start the first step's stage iteration:
     # its solution, and so the gradient, does not depend on them.
     carried0 = jax.lax.stop_gradient(carried0)
-    dtype = jnp.result_type(*jax.tree.leaves(y0))
-    tolerance = gradient.max_reconstruction_error
-    tolerance = float(np.sqrt(np.finfo(dtype).eps)) if tolerance is None else float(tolerance)
+    tolerance = _tolerance(gradient.max_reconstruction_error, y0)
     saved, y_last, *counts = _run_and_undo(
         (y0, args, vector_field), method, undo, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk, tolerance
     )
@@ -151,6 +151,29 @@ def _or_zeros(gradient, zeros):
     return zeros if gradient is None else gradient
 
 
+def _step_back(method, undo, params_dynamic, params_static, t_start, t_end, dt, y_next, cotangent, undo_carried, result):
+    """The step of `method` from t_start to t_end = t_start + dt that ended at
+    `y_next` undone, and `cotangent` pulled back through it: (the step's start,
+    its cotangent, the parameters' cotangent, what the undoing step carries,
+    the first failure). The parameters are (args, vector field), split into
+    the arrays differentiated and the rest."""
+    args, vector_field = eqx.combine(params_dynamic, params_static)
+    dtype = jnp.result_type(*jax.tree.leaves(y_next))
+    if isinstance(method, Splitting) and jnp.finfo(dtype).eps <= LOW_PRECISION_EPS:
+        # Undone and differentiated from its end, each sub-flow once.
+        y_prev, cotangent_prev, args_step = method.reverse_step(t_start, y_next, dt, args, cotangent)
+        return y_prev, cotangent_prev, (args_step, jax.tree.map(jnp.zeros_like, params_dynamic[1])), undo_carried, result
+    undone = undo.carried_step(vector_field, t_end, y_next, -dt, args, undo_carried)
+
+    def forward(y, dynamic):
+        a, f = eqx.combine(dynamic, params_static)
+        return method.step(f, t_start, y, dt, a).y
+
+    _, vjp = eqx.filter_vjp(forward, undone.y, params_dynamic)
+    cotangent_prev, params_step = vjp(cotangent)
+    return undone.y, cotangent_prev, params_step, undone.carried, first_failure(result, undone.result)
+
+
 @_run_and_undo.def_bwd
 def _run_and_undo_bwd(
     kept, grad_out, perturbed, diff, method, undo, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk, tolerance
@@ -166,28 +189,13 @@ def _run_and_undo_bwd(
     grad_saved = saved_zeros if grad_saved is None else jax.tree.map(_or_zeros, grad_saved, saved_zeros, is_leaf=_is_none)
     grad_last = zeros_y if grad_last is None else jax.tree.map(_or_zeros, grad_last, zeros_y, is_leaf=_is_none)
     params_dynamic, params_static = eqx.partition((args, vector_field), eqx.is_inexact_array)
-    dtype = jnp.result_type(*jax.tree.leaves(y0))
-    sub_step_by_sub_step = isinstance(method, Splitting) and jnp.finfo(dtype).eps <= LOW_PRECISION_EPS
     params_grad0 = jax.tree.map(jnp.zeros_like, params_dynamic)
-
-    def step_vjp(y_prev, n, cotangent):
-        def forward(y, dynamic):
-            a, f = eqx.combine(dynamic, params_static)
-            return method.step(f, t0 + n * dt, y, dt, a).y
-
-        _, vjp = eqx.filter_vjp(forward, y_prev, params_dynamic)
-        return vjp(cotangent)
 
     def back_one_step(carry, n):
         y_next, cotangent, params_grad, undo_carried, result = carry
-        if sub_step_by_sub_step:
-            # Undone and differentiated from its end, each sub-flow once.
-            y_prev, cotangent_prev, args_step = method.reverse_step(t0 + n * dt, y_next, dt, args, cotangent)
-            params_step = (args_step, jax.tree.map(jnp.zeros_like, params_dynamic[1]))
-        else:
-            undone = undo.carried_step(vector_field, t0 + (n + 1) * dt, y_next, -dt, args, undo_carried)
-            y_prev, undo_carried, result = undone.y, undone.carried, first_failure(result, undone.result)
-            cotangent_prev, params_step = step_vjp(y_prev, n, cotangent)
+        y_prev, cotangent_prev, params_step, undo_carried, result = _step_back(
+            method, undo, params_dynamic, params_static, t0 + n * dt, t0 + (n + 1) * dt, dt, y_next, cotangent, undo_carried, result
+        )
         params_grad = jax.tree.map(lambda a, b: a + b, params_grad, params_step)
         return (y_prev, cotangent_prev, params_grad, undo_carried, result), None
 
@@ -200,9 +208,7 @@ def _run_and_undo_bwd(
         init = (y_end, cotangent, params_grad, undo_carried, result)
         (rebuilt, cotangent, params_grad, _, result), _ = jax.lax.scan(back_one_step, init, steps)
         # The stretch's first state is kept too: how far the rebuilt one is from it.
-        gap = largest_entry_difference(rebuilt, y_start)
-        size = jnp.max(jnp.stack([jnp.max(jnp.abs(b)) for b in jax.tree.leaves(y_start)]))
-        return (cotangent, params_grad, result, jnp.maximum(worst, gap / (1 + size))), None
+        return (cotangent, params_grad, result, jnp.maximum(worst, _reconstruction_gap(rebuilt, y_start))), None
 
     total_chunks = num_saves * chunks_per_save
 
@@ -218,16 +224,198 @@ def _run_and_undo_bwd(
     firsts = steps_done + chunk * jnp.arange(total_chunks, dtype=jnp.int32)
     init = (grad_last, params_grad0, RESULTS.successful, jnp.zeros((), jnp.result_type(*jax.tree.leaves(y0))))
     (cotangent, params_grad, result, worst), _ = jax.lax.scan(back_one_chunk, init, (kept_flat, starts, incoming, firsts), reverse=True)
-    # The checks act through every gradient returned: those not asked for
-    # are dropped, with whatever they pass through.
-    grads = (cotangent, params_grad)
+    remedy = "give a smaller checkpoint_every (or save more often)"
+    cotangent, (args_grad, field_grad) = _checked((cotangent, params_grad), result, worst, tolerance, f"{chunk} steps", remedy)
+    return cotangent, args_grad, field_grad
+
+
+def _reconstruction_gap(rebuilt, kept):
+    """max |rebuilt − kept| / (1 + max |kept|) over the state's entries."""
+    size = jnp.max(jnp.stack([jnp.max(jnp.abs(b)) for b in jax.tree.leaves(kept)]))
+    return largest_entry_difference(rebuilt, kept) / (1 + size)
+
+
+def _checked(grads, result, worst, tolerance, stretch, remedy):
+    """`grads`, raising where an undoing step failed or a rebuilt state is
+    off its kept one by more than `tolerance`. The checks act through every
+    gradient returned: those not asked for are dropped, with whatever they
+    pass through."""
     grads = result.error_if(grads, result != RESULTS.successful)
-    grads = eqx.error_if(
+    return eqx.error_if(
         grads,
         ~(worst <= tolerance),
-        f"ReversibleGradient: a state rebuilt by undoing steps is off the kept one by more than max_reconstruction_error = "
-        f"{tolerance:.1e} (relative); the motion amplifies the rounding over a stretch of {chunk} steps: give a smaller "
-        "checkpoint_every (or save more often).",
+        f"reversible gradient: a state rebuilt by undoing steps is off the kept one by more than max_reconstruction_error = "
+        f"{tolerance:.1e} (relative); the motion amplifies the rounding over a stretch of {stretch}: {remedy}.",
     )
-    cotangent, (args_grad, field_grad) = grads
-    return cotangent, args_grad, field_grad
+
+
+def _tolerance(max_reconstruction_error, y):
+    """`max_reconstruction_error`, or √ε of the state's dtype for None."""
+    if max_reconstruction_error is None:
+        return float(np.sqrt(np.finfo(jnp.result_type(*jax.tree.leaves(y))).eps))
+    return float(max_reconstruction_error)
+
+
+class ReversibleAdjoint(diffrax.AbstractAdjoint):
+    """Gradients of `diffrax.diffeqsolve` with `PRKMKSolver` by reconstructing
+    the states backwards (module docstring): `diffeqsolve(...,
+    adjoint=ReversibleAdjoint())`. The forward solve keeps its last state
+    only; the backward pass undoes its steps from there to y0 (which it
+    compares the rebuilt y0 with, as `ReversibleGradient` compares each kept
+    state). Memory does not grow with the number of steps, and the
+    reconstruction runs over the whole solve: for a long or chaotic one,
+    `integrate` with `ReversibleGradient(checkpoint_every=...)` bounds it.
+
+    It takes what a fixed-step solve to t1 is: `PRKMKSolver` (not adaptive) of
+    a method that `undoing_method` accepts, `ConstantStepSize` with `dt0`,
+    `SaveAt(t1=True)`, no event and no solver or controller state passed in.
+    Anything else raises `ValueError` (`TypeError` for a method that cannot
+    be undone) when the solve is traced.
+
+    The backward pass takes each step's times from diffrax's rule for
+    `ConstantStepSize` (a first step of dt0, then t0 + (t1 − t0)·k/n), and the
+    number of steps from the solve.
+
+    - `max_reconstruction_error`: as in `ReversibleGradient`; None takes √ε
+      of the state's dtype.
+    """
+
+    max_reconstruction_error: float | None = eqx.field(static=True, default=None)
+
+    def __check_init__(self):
+        tol = self.max_reconstruction_error
+        if tol is not None and not (isinstance(tol, (int, float)) and not isinstance(tol, bool) and tol > 0):
+            raise ValueError(f"max_reconstruction_error must be None or a number > 0, got {tol!r}.")
+
+    def loop(
+        self,
+        *,
+        args,
+        terms,
+        solver,
+        stepsize_controller,
+        event,
+        saveat,
+        t0,
+        t1,
+        dt0,
+        max_steps,
+        throw,
+        init_state,
+        passed_solver_state,
+        passed_controller_state,
+        progress_meter,
+    ):
+        del throw
+        if not isinstance(solver, PRKMKSolver) or solver.adaptive:
+            raise ValueError(f"ReversibleAdjoint needs PRKMKSolver(method) with fixed steps, got {solver!r}.")
+        undo = undoing_method(solver.method)
+        if not isinstance(stepsize_controller, diffrax.ConstantStepSize) or dt0 is None:
+            raise ValueError("ReversibleAdjoint needs stepsize_controller=ConstantStepSize() (the default) and a dt0.")
+        if eqx.tree_equal(saveat, diffrax.SaveAt(t1=True)) is not True:
+            raise ValueError("ReversibleAdjoint needs saveat=SaveAt(t1=True) (the default): the last state is the one it keeps.")
+        if event is not None:
+            raise ValueError("ReversibleAdjoint does not take an event.")
+        if passed_solver_state or passed_controller_state:
+            raise ValueError("ReversibleAdjoint does not take a solver_state or controller_state: the solve starts afresh.")
+        y0 = init_state.y
+        init_state = eqx.tree_at(lambda s: s.y, init_state, object())
+        # The stage slopes carried in the solver state only start the stages.
+        init_state = eqx.tree_at(lambda s: s.solver_state, init_state, replace_fn=jax.lax.stop_gradient)
+        loop = dict(
+            self=self,
+            undo=undo,
+            solver=solver,
+            stepsize_controller=stepsize_controller,
+            saveat=saveat,
+            t0=t0,
+            t1=t1,
+            dt0=dt0,
+            max_steps=max_steps,
+            init_state=init_state,
+            progress_meter=progress_meter,
+        )
+        final_state, aux_stats = _diffrax_loop((y0, args, terms), **loop)
+        # Only the saved states are differentiated (the rest of the final
+        # state is the solve's bookkeeping, or the same state again).
+        ys = final_state.save_state.ys
+        final_state = jax.lax.stop_gradient(eqx.tree_at(lambda s: s.save_state.ys, final_state, None, is_leaf=_is_none))
+        return eqx.tree_at(lambda s: s.save_state.ys, final_state, ys, is_leaf=_is_none), aux_stats
+
+
+def _constant_step_end(k, t0, t1, dt0):
+    """Where step k of diffrax's `ConstantStepSize` ends (t0 for k = 0): the
+    first step is dt0 and step k ≥ 2 ends at t0 + (t1 − t0)·k/n, n the number
+    of steps (diffrax's own formula, without accumulated rounding); an end
+    within 100 ulp of t1 is t1, as in diffrax's loop.
+    `test_reversible.py` checks these against diffrax's steps."""
+    dtype = jnp.result_type(t0, t1, dt0)
+    n = jnp.ceil((t1 - t0) / jnp.nextafter(dt0, jnp.inf)).astype(jnp.int32)
+    end = t0 + (t1 - t0) * (jnp.asarray(k, dtype) / n.astype(dtype))
+    end = jnp.where(k == n, t1, end)
+    end = jnp.where(k == 1, t0 + dt0, end)
+    t1_clip_floor = t1
+    for _ in range(100):
+        t1_clip_floor = jnp.nextafter(t1_clip_floor, -jnp.inf)
+    end = jnp.where(end > t1_clip_floor, t1, end)
+    return jnp.where(k == 0, t0, end)
+
+
+def _while_loop(cond_fun, body_fun, init_val, **kwargs):
+    """diffrax's loop hooks, as plain `lax.while_loop`s (not differentiated:
+    the backward pass is `_diffrax_loop`'s own)."""
+    del kwargs
+    return jax.lax.while_loop(cond_fun, body_fun, init_val)
+
+
+@eqx.filter_custom_vjp
+def _diffrax_loop(y_args_terms, *, self, undo, init_state, **kwargs):
+    y0, args, terms = y_args_terms
+    init_state = eqx.tree_at(lambda s: s.y, init_state, y0)
+    loops = dict(inner_while_loop=_while_loop, outer_while_loop=_while_loop)
+    return self._loop(args=args, terms=terms, init_state=init_state, event=None, **loops, **kwargs)
+
+
+@_diffrax_loop.def_fwd
+def _diffrax_loop_fwd(perturbed, y_args_terms, **kwargs):
+    del perturbed
+    final_state, aux_stats = _diffrax_loop(y_args_terms, **kwargs)
+    return (final_state, aux_stats), (final_state.y, final_state.num_steps)
+
+
+@_diffrax_loop.def_bwd
+def _diffrax_loop_bwd(residuals, grad_out, perturbed, y_args_terms, *, self, undo, solver, t0, t1, dt0, **kwargs):
+    """Walk back from the last state over every step the solve took."""
+    del perturbed, kwargs
+    y_last, num_steps = residuals
+    y0, args, terms = y_args_terms
+    grad_ys = None if grad_out[0] is None else grad_out[0].save_state.ys
+    if grad_ys is None:
+        cotangent = jax.tree.map(jnp.zeros_like, y_last)
+    else:
+        cotangent = jax.tree.map(lambda y, g: jnp.zeros_like(y) if g is None else g[0], y_last, grad_ys, is_leaf=_is_none)
+    method, field = solver.method, _user_clock(terms)
+    params_dynamic, params_static = eqx.partition((args, field), eqx.is_inexact_array)
+    direction = field.direction
+
+    def step_times(k):
+        start, end = _constant_step_end(k, t0, t1, dt0), _constant_step_end(k + 1, t0, t1, dt0)
+        return direction * start, direction * end, direction * (end - start)
+
+    def back_one_step(carry):
+        k, y_next, cotangent, params_grad, undo_carried, result = carry
+        s_start, s_end, h = step_times(k)
+        y_prev, cotangent, params_step, undo_carried, result = _step_back(
+            method, undo, params_dynamic, params_static, s_start, s_end, h, y_next, cotangent, undo_carried, result
+        )
+        return k - 1, y_prev, cotangent, jax.tree.map(jnp.add, params_grad, params_step), undo_carried, result
+
+    undo_carried = undo.initial_carried(field, direction * t1, y_last, args)
+    init = (num_steps - 1, y_last, cotangent, jax.tree.map(jnp.zeros_like, params_dynamic), undo_carried, RESULTS.successful)
+    _, rebuilt, cotangent, params_grad, _, result = jax.lax.while_loop(lambda carry: carry[0] >= 0, back_one_step, init)
+    tolerance = _tolerance(self.max_reconstruction_error, y0)
+    remedy = "integrate with ReversibleGradient(checkpoint_every=...) instead"
+    cotangent, (args_grad, field_grad) = _checked(
+        (cotangent, params_grad), result, _reconstruction_gap(rebuilt, y0), tolerance, "the whole solve", remedy
+    )
+    return cotangent, args_grad, None if field_grad is None else field_grad.terms

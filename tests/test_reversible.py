@@ -3,6 +3,7 @@ the stored steps and to finite differences, for every family of methods
 that can be undone; memory that does not grow with the number of steps;
 closures, vmap, float32 and refusals."""
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from prkmk_jax.scenes import FreeRigidBody, HeavyTop, TopParameters, random_rotation
+from prkmk_jax.scenes import ForcedParameters, ForcedRigidBody, FreeRigidBody, HarmonicTorque, HeavyTop, TopParameters, random_rotation
 
 FREE, TOP = FreeRigidBody(), HeavyTop()
 INERTIA = jnp.array([7 / 8, 5 / 8, 1 / 4])
@@ -188,3 +189,89 @@ def test_refusals():
         pk.ReversibleGradient(max_reconstruction_error=-1.0)
     with pytest.raises(TypeError, match="ReversibleGradient"):
         _gradients(FREE.method(pk.stormer_verlet), FREE, INERTIA, gradient="reversible")
+
+
+# --- diffeqsolve: ReversibleAdjoint ------------------------------------------------
+
+
+def _solve_loss(method, field, t1, dt0, adjoint):
+    def loss(y0, args):
+        sol = diffrax.diffeqsolve(pk.PRKMKTerm(field), pk.PRKMKSolver(method), 0.0, t1, dt0, y0, args, adjoint=adjoint, max_steps=10_000)
+        return jnp.sum(sol.ys.fiber[-1] ** 2 * jnp.arange(1.0, 4.0)) + jnp.sum(sol.ys.base.matrix[-1, 0, :] * jnp.arange(1.0, 4.0))
+
+    return loss
+
+
+FORCED = ForcedRigidBody()
+FORCED_ARGS = ForcedParameters(INERTIA, HarmonicTorque(jnp.array([0.3, 0.2, 0.1]), jnp.array([1.0, 2.0, 3.0]), jnp.array([0.0, 0.5, 1.0])))
+SOLVE_CASES = {
+    "PRKMK SV": (FREE, FREE.method(pk.stormer_verlet), INERTIA),
+    "splitting": (FREE, FREE.splitting(), INERTIA),
+    "heavy top, splitting": (TOP, TOP.splitting(), TOP_ARGS),
+    "forced body (time-dependent), Symmetrized SV": (FORCED, pk.Symmetrized(FORCED.method(pk.stormer_verlet)), FORCED_ARGS),
+}
+
+
+@pytest.mark.parametrize("name", SOLVE_CASES)
+def test_reversible_adjoint_equals_recursive_checkpointing(name):
+    """t1 = 1.23 with dt0 = 0.05: 24 whole steps and a last one of 0.03."""
+    field, method, args = SOLVE_CASES[name]
+
+    def gradient(adjoint):
+        return jax.jit(jax.grad(_solve_loss(method, field, 1.23, 0.05, adjoint), argnums=(0, 1)))(Y0, args)
+
+    reference = gradient(diffrax.RecursiveCheckpointAdjoint())
+    assert _relative_gap(reference, gradient(pk.ReversibleAdjoint())) <= 1e-10
+
+
+def test_reversible_adjoint_memory_does_not_grow_with_the_number_of_steps():
+    method = FREE.splitting()
+
+    def temp_bytes(num_steps):
+        grad = jax.jit(jax.grad(_solve_loss(method, FREE, num_steps * 0.01, 0.01, pk.ReversibleAdjoint()), argnums=1))
+        return grad.lower(Y0, INERTIA).compile().memory_analysis().temp_size_in_bytes
+
+    small, large = temp_bytes(100), temp_bytes(10_000)
+    assert large <= 1.5 * small, (small, large)
+
+
+def test_reversible_adjoint_checks_the_rebuilt_initial_state():
+    """The chaotic heavy top over 8000 steps of 0.05 cannot be rebuilt to √ε."""
+    loss = _solve_loss(TOP.splitting(), TOP, 400.0, 0.05, pk.ReversibleAdjoint())
+    with pytest.raises(Exception, match="max_reconstruction_error"):
+        jax.block_until_ready(jax.jit(jax.grad(loss, argnums=1))(Y0, TOP_ARGS))
+
+
+def test_reversible_adjoint_refusals():
+    method = FREE.method(pk.stormer_verlet)
+
+    def solve(method=method, **kwargs):
+        options = dict(adjoint=pk.ReversibleAdjoint(), max_steps=100) | kwargs
+
+        def loss(args):
+            return diffrax.diffeqsolve(pk.PRKMKTerm(FREE), pk.PRKMKSolver(method), 0.0, 1.0, 0.1, Y0, args, **options).ys.fiber.sum()
+
+        return jax.grad(loss)(INERTIA)
+
+    with pytest.raises(ValueError, match="ConstantStepSize"):
+        solve(stepsize_controller=diffrax.PIDController(rtol=1e-6, atol=1e-6))
+    with pytest.raises(ValueError, match="SaveAt"):
+        solve(saveat=diffrax.SaveAt(ts=jnp.array([0.5, 1.0])))
+    with pytest.raises(TypeError, match="can be undone exactly"):
+        solve(method=pk.Composition(method, pk.yoshida_triple_jump))
+    with pytest.raises(ValueError, match="max_reconstruction_error"):
+        pk.ReversibleAdjoint(max_reconstruction_error=0.0)
+
+
+@pytest.mark.parametrize("t1, dt0", [(1.23, 0.05), (1.0, 0.1), (0.3, 0.5), (7.0, 0.013)])
+def test_reversible_adjoint_steps_at_diffrax_times(t1, dt0):
+    """The times the backward pass undoes the steps at are those of diffrax's
+    steps (`SaveAt(steps=True)`), to the last bit (the same formula, whose
+    product XLA may round either way)."""
+    from prkmk_jax.reversible import _constant_step_end
+
+    solver, steps = pk.PRKMKSolver(FREE.splitting()), diffrax.SaveAt(steps=True)
+    sol = diffrax.diffeqsolve(pk.PRKMKTerm(FREE), solver, 0.0, t1, dt0, Y0, INERTIA, saveat=steps, max_steps=1000)
+    n = int(sol.stats["num_steps"])
+    ends = jax.vmap(lambda k: _constant_step_end(k, jnp.asarray(0.0), jnp.asarray(t1), jnp.asarray(dt0)))(jnp.arange(1, n + 1))
+    np.testing.assert_allclose(ends, sol.ts[:n], rtol=2.3e-16, atol=0)
