@@ -51,7 +51,7 @@ class PRKMKTerm(diffrax.AbstractTerm):
 _EUCLIDEAN_USE = (
     "PRKMKTerm's vector field is a Lie-algebra generator (ξ, η), not dy/dt, so it cannot be used by a Euclidean "
     "solver or by BacksolveAdjoint, which solves the continuous adjoint equations as if the state were Euclidean. "
-    "Use PRKMKSolver with RecursiveCheckpointAdjoint (the default), DirectAdjoint or ForwardMode."
+    "Use PRKMKSolver with RecursiveCheckpointAdjoint (the default), DirectAdjoint, ForwardMode or ReversibleAdjoint."
 )
 
 
@@ -100,7 +100,8 @@ class PRKMKSolver(diffrax.AbstractSolver):
     `integrate`; dense output (`SaveAt(ts=...)`, `SaveAt(dense=True)`,
     `Solution.evaluate`) is `OnGroupInterpolation`, of order min(p, 3).
     Gradients: `RecursiveCheckpointAdjoint` (default), `DirectAdjoint`,
-    `ForwardMode`. `BacksolveAdjoint` is refused, with this library's message,
+    `ForwardMode`, and `ReversibleAdjoint` for fixed steps (the states
+    rebuilt backwards, `reversible.py`). `BacksolveAdjoint` is refused, with this library's message,
     when its backward solve starts: that solve hands the solver diffrax's
     adjoint term and an augmented Euclidean state (its continuous adjoint
     treats the state as Euclidean). Its forward solve is the plain solve.

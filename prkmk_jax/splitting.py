@@ -169,9 +169,11 @@ class Splitting(AbstractMethod):
         """The step from t to t + dt that ended at `y_next` undone, and a
         cotangent at its end pulled back through it: (y, the cotangent at y,
         the cotangent of `args`). Sub-step by sub-step from the last: each
-        flow's coefficients are computed at its end (they read rows the flow
-        leaves unchanged, `AbstractExactFlow.coefficients`), undo it and give
-        its VJP there, so no sub-step is recomputed from its start. In float64
+        flow's coefficients, conserved along it, are computed at its end and
+        undo it; its VJP is written out (`AbstractExactFlow.pulled_back`),
+        with the coefficients' own VJP taken at the same point where they
+        read only rows the flow leaves unchanged (and at the sub-step's start
+        otherwise), so no sub-step is recomputed from its start. In float64
         this is the exact inverse and VJP of `step` to round-off; in low
         precision the step's renormalisation onto the group has no inverse,
         and this raises `ValueError` (undo by `step` of −dt and differentiate
@@ -209,8 +211,10 @@ class Splitting(AbstractMethod):
             cotangent_read, cotangent_args_part = pull_coefficients(cotangent_c)
             cotangent_z = cotangent_moved + cotangent_read
             cotangent_args = jax.tree.map(jnp.add, cotangent_args, cotangent_args_part)
-            if is_vectorised(z.shape[1:]) or flow.always_materialised:
-                z, cotangent_z = jax.lax.optimization_barrier((z, cotangent_z))
+            # Each sub-step's state and cotangent are computed once, at any
+            # batch: fused across sub-steps, XLA's program and its compile
+            # time grow far faster than the number of sub-steps.
+            z, cotangent_z = jax.lax.optimization_barrier((z, cotangent_z))
         y = self.scene.unpack(z, y_next, args)
         _, pull_pack = jax.vjp(lambda y: self.scene.pack(y, args), y)
         (cotangent_y,) = pull_pack(cotangent_z)

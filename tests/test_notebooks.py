@@ -16,6 +16,7 @@ EXPECTED = [
     "04_where_methods_fail",
     "05_choosing_a_method",
     "06_fit_control_torque",
+    "07_fit_over_a_long_horizon",
 ]
 # The notebooks whose kernels keep LLVM's optimisation passes (off in the
 # other tests, conftest.py): their batches run long enough for the passes to
