@@ -10,7 +10,12 @@ differentiated as in the forward step). The forward pass keeps the saved
 states and one state every `checkpoint_every` steps; each stretch between
 two kept states is reconstructed from the later one, so the reconstruction
 error cannot grow over more than that stretch, and the memory is that of
-the kept states, whatever the number of steps.
+the kept states, whatever the number of steps. A `Splitting` in float64 is
+undone and differentiated sub-flow by sub-flow instead
+(`Splitting.reverse_step`), without running its step forward again.
+
+`ReversibleGradient` does this for `integrate` and `resume`;
+`ReversibleAdjoint` for `diffrax.diffeqsolve` with `PRKMKSolver`.
 """
 
 import diffrax
