@@ -56,13 +56,6 @@ def is_vectorised(batch_shape: tuple[int, ...]) -> bool:
     return math.prod(batch_shape) >= VECTORISED_BATCH
 
 
-def rotation_sine_cosine(coordinates: AbstractCoordinates, angle: Array, vectorised: bool) -> tuple[Array, Array]:
-    """(sin, cos) of the planar rotation that the coordinate map gives the
-    algebra element `angle`·eᵢ (`AbstractCoordinates.planar_rotation`): the
-    exponential turns by `angle`, the Cayley map by 2·atan(angle/2)."""
-    return coordinates.planar_rotation(angle, vectorised=vectorised)
-
-
 def rotated_rows(z: Packed, pairs: tuple[tuple[int, int], ...], sine: Array, cosine: Array) -> Packed:
     """z with each pair of rows (j, k) turned in its plane: (z_j, z_k) ↦
     (c z_j + s z_k, −s z_j + c z_k), the whole array rebuilt."""
@@ -144,8 +137,10 @@ class AxisRotation(AbstractExactFlow):
             raise ValueError(f"axis must be 0, 1 or 2, got {self.axis!r}.")
 
     def coefficients(self, coordinates, t, z, h, args, vectorised):
-        """(sin, cos) of the angle turned (`rotation_sine_cosine`)."""
-        return rotation_sine_cosine(coordinates, h * self.rate(z, args), vectorised)
+        """(sin, cos) of the planar rotation that the coordinate map gives the
+        angle h·rate about the axis (`AbstractCoordinates.planar_rotation`):
+        the exponential turns by that angle, the Cayley map by 2·atan(angle/2)."""
+        return coordinates.planar_rotation(h * self.rate(z, args), vectorised=vectorised)
 
     def moved(self, z, coefficients):
         sine, cosine = coefficients

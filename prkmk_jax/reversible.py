@@ -56,9 +56,12 @@ class ReversibleGradient(eqx.Module):
         k = self.checkpoint_every
         if k is not None and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
             raise ValueError(f"checkpoint_every must be None or an int ≥ 1, got {k!r}.")
-        tol = self.max_reconstruction_error
-        if tol is not None and not (isinstance(tol, (int, float)) and not isinstance(tol, bool) and tol > 0):
-            raise ValueError(f"max_reconstruction_error must be None or a number > 0, got {tol!r}.")
+        _check_max_reconstruction_error(self.max_reconstruction_error)
+
+
+def _check_max_reconstruction_error(tol) -> None:
+    if tol is not None and not (isinstance(tol, (int, float)) and not isinstance(tol, bool) and tol > 0):
+        raise ValueError(f"max_reconstruction_error must be None or a number > 0, got {tol!r}.")
 
 
 def undoing_method(method: AbstractMethod) -> AbstractMethod:
@@ -288,9 +291,7 @@ class ReversibleAdjoint(diffrax.AbstractAdjoint):
     max_reconstruction_error: float | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
-        tol = self.max_reconstruction_error
-        if tol is not None and not (isinstance(tol, (int, float)) and not isinstance(tol, bool) and tol > 0):
-            raise ValueError(f"max_reconstruction_error must be None or a number > 0, got {tol!r}.")
+        _check_max_reconstruction_error(self.max_reconstruction_error)
 
     def loop(
         self,
@@ -348,22 +349,27 @@ class ReversibleAdjoint(diffrax.AbstractAdjoint):
         return eqx.tree_at(lambda s: s.save_state.ys, final_state, ys, is_leaf=_is_none), aux_stats
 
 
-def _constant_step_end(k, t0, t1, dt0):
-    """Where step k of diffrax's `ConstantStepSize` ends (t0 for k = 0): the
-    first step is dt0 and step k ≥ 2 ends at t0 + (t1 − t0)·k/n, n the number
-    of steps (diffrax's own formula, without accumulated rounding); an end
-    within 100 ulp of t1 is t1, as in diffrax's loop.
+def _constant_step_ends(t0, t1, dt0):
+    """k ↦ where step k of diffrax's `ConstantStepSize` ends (t0 for k = 0):
+    the first step is dt0 and step k ≥ 2 ends at t0 + (t1 − t0)·k/n, n the
+    number of steps (diffrax's own formula, without accumulated rounding); an
+    end within 100 ulp of t1 is t1, as in diffrax's loop. n and that bound
+    are computed once, outside the loop that asks for each end.
     `test_reversible.py` checks these against diffrax's steps."""
     dtype = jnp.result_type(t0, t1, dt0)
     n = jnp.ceil((t1 - t0) / jnp.nextafter(dt0, jnp.inf)).astype(jnp.int32)
-    end = t0 + (t1 - t0) * (jnp.asarray(k, dtype) / n.astype(dtype))
-    end = jnp.where(k == n, t1, end)
-    end = jnp.where(k == 1, t0 + dt0, end)
     t1_clip_floor = t1
     for _ in range(100):
         t1_clip_floor = jnp.nextafter(t1_clip_floor, -jnp.inf)
-    end = jnp.where(end > t1_clip_floor, t1, end)
-    return jnp.where(k == 0, t0, end)
+
+    def end_of(k):
+        end = t0 + (t1 - t0) * (jnp.asarray(k, dtype) / n.astype(dtype))
+        end = jnp.where(k == n, t1, end)
+        end = jnp.where(k == 1, t0 + dt0, end)
+        end = jnp.where(end > t1_clip_floor, t1, end)
+        return jnp.where(k == 0, t0, end)
+
+    return end_of
 
 
 def _while_loop(cond_fun, body_fun, init_val, **kwargs):
@@ -402,9 +408,10 @@ def _diffrax_loop_bwd(residuals, grad_out, perturbed, y_args_terms, *, self, und
     method, field = solver.method, _user_clock(terms)
     params_dynamic, params_static = eqx.partition((args, field), eqx.is_inexact_array)
     direction = field.direction
+    end_of = _constant_step_ends(t0, t1, dt0)
 
     def step_times(k):
-        start, end = _constant_step_end(k, t0, t1, dt0), _constant_step_end(k + 1, t0, t1, dt0)
+        start, end = end_of(k), end_of(k + 1)
         return direction * start, direction * end, direction * (end - start)
 
     def back_one_step(carry):

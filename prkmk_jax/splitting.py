@@ -145,9 +145,8 @@ class Splitting(AbstractMethod):
         dtype = jnp.result_type(*jax.tree.leaves(y))
         t, dt = jnp.asarray(t, dtype), jnp.asarray(dt, dtype)
         flows = self.scene.exact_flows(args)
-        fractions = (1.0,) if self.coefficients is None else self.coefficients.fractions
         z = self.scene.pack(y, args)
-        for part, start, step in sub_steps(len(flows), fractions, merge=self.coordinates.maps_lines_to_subgroups):
+        for part, start, step in self._sub_steps(len(flows)):
             z = flows[part].flow(self.coordinates, t + start * dt, z, step * dt, args)
             if is_vectorised(z.shape[1:]) or flows[part].always_materialised:
                 # Each sub-step's state is computed once: XLA would otherwise
@@ -164,6 +163,12 @@ class Splitting(AbstractMethod):
         field_now = self.generator(vector_field, t, y, args)
         result = flag_nonfinite(RESULTS.successful, y_next)
         return Step(y_next, self.increment_between(y, y_next), result, jnp.array(0, jnp.int32), field_now)
+
+    def _sub_steps(self, num_parts: int) -> tuple[tuple[int, float, float], ...]:
+        """This method's sub-steps (`sub_steps`): its composition's fractions,
+        adjacent flows merged where the map sends lines to subgroups."""
+        fractions = (1.0,) if self.coefficients is None else self.coefficients.fractions
+        return sub_steps(num_parts, fractions, merge=self.coordinates.maps_lines_to_subgroups)
 
     def reverse_step(self, t: Time, y_next: BundleElement, dt: Time, args: PyTree, cotangent: BundleElement):
         """The step from t to t + dt that ended at `y_next` undone, and a
@@ -182,8 +187,7 @@ class Splitting(AbstractMethod):
         if jnp.finfo(dtype).eps > LOW_PRECISION_EPS:
             raise ValueError(f"reverse_step needs a dtype with machine epsilon at most {LOW_PRECISION_EPS:g}, got {dtype}.")
         t, dt = jnp.asarray(t, dtype), jnp.asarray(dt, dtype)
-        fractions = (1.0,) if self.coefficients is None else self.coefficients.fractions
-        plan = sub_steps(len(self.scene.exact_flows(args)), fractions, merge=self.coordinates.maps_lines_to_subgroups)
+        plan = self._sub_steps(len(self.scene.exact_flows(args)))
         z = self.scene.pack(y_next, args)
         _, pull_unpack = jax.vjp(lambda z: self.scene.unpack(z, y_next, args), z)
         (cotangent_z,) = pull_unpack(cotangent)

@@ -268,12 +268,12 @@ def test_reversible_adjoint_steps_at_diffrax_times(t1, dt0):
     """The times the backward pass undoes the steps at are those of diffrax's
     steps (`SaveAt(steps=True)`), to the last bit (the same formula, whose
     product XLA may round either way)."""
-    from prkmk_jax.reversible import _constant_step_end
+    from prkmk_jax.reversible import _constant_step_ends
 
     solver, steps = pk.PRKMKSolver(FREE.splitting()), diffrax.SaveAt(steps=True)
     sol = diffrax.diffeqsolve(pk.PRKMKTerm(FREE), solver, 0.0, t1, dt0, Y0, INERTIA, saveat=steps, max_steps=1000)
     n = int(sol.stats["num_steps"])
-    ends = jax.vmap(lambda k: _constant_step_end(k, jnp.asarray(0.0), jnp.asarray(t1), jnp.asarray(dt0)))(jnp.arange(1, n + 1))
+    ends = jax.vmap(_constant_step_ends(jnp.asarray(0.0), jnp.asarray(t1), jnp.asarray(dt0)))(jnp.arange(1, n + 1))
     np.testing.assert_allclose(ends, sol.ts[:n], rtol=2.3e-16, atol=0)
 
 

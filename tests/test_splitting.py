@@ -218,6 +218,14 @@ def test_gradients_through_integrate_and_diffeqsolve_match_finite_differences():
     np.testing.assert_allclose(through_integrate(lever), through_diffeqsolve(lever), rtol=1e-14)
 
 
+def _batch_of(y0, batch, seed):
+    """`batch` copies of y0 in the state's leading axis, differing by their
+    initial attitude (turned by random rotations from `seed` on)."""
+    turns = jnp.asarray(np.stack([random_rotation(seed + k) for k in range(batch)]))
+    ys = jax.tree.map(lambda a: jnp.broadcast_to(a, (batch, *a.shape)), y0)
+    return pk.BundleElement(type(y0.base)(turns @ ys.base.matrix), ys.fiber)
+
+
 @pytest.mark.parametrize("batch", [3, pk.exact_flows.VECTORISED_BATCH])
 @pytest.mark.parametrize("name", CASES)
 def test_a_batch_in_the_state_and_vmap_give_the_single_runs(name, batch):
@@ -226,10 +234,7 @@ def test_a_batch_in_the_state_and_vmap_give_the_single_runs(name, batch):
     trajectory as its own run."""
     scene, y0, args = CASES[name]
     method = scene.splitting(pk.suzuki_5)
-    turns = jnp.asarray(np.stack([random_rotation(10 + k) for k in range(batch)]))
-    # The trajectories differ by their initial attitude.
-    ys = jax.tree.map(lambda a: jnp.broadcast_to(a, (batch, *a.shape)), y0)
-    ys = pk.BundleElement(type(y0.base)(turns @ ys.base.matrix), ys.fiber)
+    ys = _batch_of(y0, batch, seed=10)
 
     def final(y):
         return pk.integrate(method, scene, y, 0.0, 0.1, 20, args, save_every=20).ys
@@ -260,9 +265,7 @@ def test_reverse_step_undoes_the_step_and_gives_its_vjp(name, variant, batch):
     scene, y0, args = CASES[name]
     coefficients, coordinates = REVERSE_VARIANTS[variant]
     method = pk.Splitting(scene, coefficients, coordinates)
-    turns = jnp.asarray(np.stack([random_rotation(20 + k) for k in range(batch)]))
-    ys = jax.tree.map(lambda a: jnp.broadcast_to(a, (batch, *a.shape)), y0)
-    ys = pk.BundleElement(type(y0.base)(turns @ ys.base.matrix), ys.fiber)
+    ys = _batch_of(y0, batch, seed=20)
     t, dt = 0.3, 0.05
 
     def step(y, a):
