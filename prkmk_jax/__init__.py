@@ -22,7 +22,10 @@ from . import (
     tableaus as tableaus,
 )
 from .batch import batch_sharding as batch_sharding
+from .batch import gather as gather
+from .batch import local_rows as local_rows
 from .batch import shard_batch as shard_batch
+from .batch import vmap_over_devices as vmap_over_devices
 from .bundles import (
     AbstractBundle as AbstractBundle,
 )

@@ -19,7 +19,7 @@ SCRIPT = textwrap.dedent(
     os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
     import sys
     sys.path.insert(0, "tests")
-    import diffrax, jax, jax.numpy as jnp, numpy as np
+    import diffrax, equinox as eqx, jax, jax.numpy as jnp, numpy as np
     jax.config.update("jax_enable_x64", True)
     import prkmk_jax as pk
     from helpers import INERTIA, initial_state, rigid_body_field
@@ -38,14 +38,46 @@ SCRIPT = textwrap.dedent(
         return diffrax.diffeqsolve(pk.PRKMKTerm(field), pk.PRKMKSolver(method), 0.0, 1.0, 0.01, y0, inertia).ys
 
     for run in (scan_run, diffrax_run):
-        batched = jax.jit(jax.vmap(run))
-        plain = batched(y0s, inertias)
-        sharded = batched(pk.shard_batch(y0s), pk.shard_batch(inertias))
-        out = sharded.fiber
-        assert len(out.sharding.device_set) == 4, out.sharding
-        assert sorted(s.data.shape[0] for s in out.addressable_shards) == [2, 2, 2, 2]
-        for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(sharded)):
-            assert np.abs(np.asarray(a) - np.asarray(b)).max() <= 1e-14
+        plain = jax.jit(jax.vmap(run))(y0s, inertias)
+        for batched in (jax.jit(jax.vmap(run)), jax.jit(pk.vmap_over_devices(run))):
+            sharded = batched(pk.shard_batch(y0s), pk.shard_batch(inertias))
+            out = sharded.fiber
+            assert len(out.sharding.device_set) == 4, out.sharding
+            assert sorted(s.data.shape[0] for s in out.addressable_shards) == [2, 2, 2, 2]
+            for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(sharded)):
+                assert np.abs(np.asarray(a) - np.asarray(b)).max() <= 1e-14
+            # One process: its rows are the whole batch.
+            for a, b, c in zip(jax.tree.leaves(pk.local_rows(sharded)), jax.tree.leaves(pk.gather(sharded)), jax.tree.leaves(sharded)):
+                assert isinstance(a, np.ndarray) and np.array_equal(a, b) and np.array_equal(a, np.asarray(c))
+
+    # A shared argument and a gradient summed over the devices.
+    def loss(inertia, y0s, run):
+        return jnp.mean(run(y0s, inertia).fiber[:, -1, 0] * jnp.arange(1.0, 9.0))
+
+    shared = jnp.asarray(INERTIA)
+    value_and_grad = jax.jit(jax.value_and_grad(loss), static_argnums=2)
+    plain = value_and_grad(shared, y0s, jax.vmap(scan_run, in_axes=(0, None)))
+    sharded = value_and_grad(shared, pk.shard_batch(y0s), pk.vmap_over_devices(scan_run, in_axes=(0, None)))
+    for a, b in zip(plain, sharded):
+        assert np.abs(np.asarray(a) - np.asarray(b)).max() <= 1e-12 * np.abs(np.asarray(a)).max(), (plain, sharded)
+
+    # The run-time checks still raise on each device's rows.
+    broken = pk.shard_batch(eqx.tree_at(lambda y: y.fiber, y0s, y0s.fiber.at[5, 0].set(jnp.nan)))
+    try:
+        jax.block_until_ready(jax.jit(pk.vmap_over_devices(scan_run))(broken, inertias))
+    except Exception as error:
+        assert "not finite" in str(error), error
+    else:
+        raise AssertionError("a NaN row ran")
+    # A batch that does not split over the four devices.
+    six = jax.tree.map(lambda a: a[:6], y0s)
+    for split in (pk.shard_batch, lambda y: pk.vmap_over_devices(scan_run, in_axes=(0, None))(y, inertias[0])):
+        try:
+            split(six)
+        except ValueError as error:
+            assert "6 rows" in str(error) and "4 device" in str(error), error
+        else:
+            raise AssertionError("6 rows split over 4 devices")
     print("sharded ok")
     """
 )
@@ -62,3 +94,16 @@ def test_shard_batch_checks_the_batch_axis():
         pk.shard_batch(jnp.float64(1.0))
     sharded = pk.shard_batch({"a": jnp.ones((3, 2))})  # one device here: any size divides
     assert sharded["a"].shape == (3, 2)
+
+
+def test_vmap_over_devices_refuses_what_it_cannot_split():
+    double = pk.vmap_over_devices(lambda x, c: 2 * x + c, in_axes=(0, None))
+    assert jnp.array_equal(double(jnp.arange(3.0), 1.0), 2 * jnp.arange(3.0) + 1)
+    with pytest.raises(ValueError, match="in_axes entries are 0 or None"):
+        pk.vmap_over_devices(lambda x: x, in_axes=1)(jnp.ones((2, 2)))
+    with pytest.raises(ValueError, match="in_axes has 1 entries for 2 arguments"):
+        pk.vmap_over_devices(lambda x, c: x, in_axes=(0,))(jnp.ones(2), 1.0)
+    with pytest.raises(ValueError, match="leading batch axis"):
+        pk.vmap_over_devices(lambda x: x)({"a": jnp.ones(2), "b": jnp.ones(3)})
+    with pytest.raises(TypeError, match="needs a function"):
+        pk.vmap_over_devices(3)
