@@ -43,7 +43,7 @@ Tables:
   symplectic run.
 - `work_precision`, `long_time`, `heavy_top`, `throughput`, `stability`,
   `floor`, `against_scan`, `explicit_stages`, `root_finders`,
-  `against_revision`, `gradients`, `xla_codegen`: the script of the same name's results
+  `against_revision`, `gradients`, `ensembles`, `xla_codegen`: the script of the same name's results
   file, as its function's docstring says.
 """
 
@@ -74,6 +74,7 @@ DOCUMENTS = {
         "root_finders",
         "against_revision",
         "gradients",
+        "ensembles",
         "xla_codegen",
     ),
     "docs/concepts/choosing.md": ("decision", "summary"),
@@ -591,6 +592,52 @@ def gradients_table(_entries=None, root: Path | None = None) -> str:
     return _measured_on(data) + f" h = {data['h']}; ns per trajectory-step.\n\n" + _table(headers, rows)
 
 
+def ensembles_table(_entries=None, root: Path | None = None) -> str:
+    """`ensembles.py`: ensemble throughput, efficiency per device and memory
+    per process against the number of processes and devices per process."""
+    data = results_file("ensembles.json", root)
+    rows = [
+        [
+            str(r["processes"]),
+            str(r["devices_per_process"]),
+            f"{r['median_s']['forward']:.3f}",
+            f"{r['median_s']['value_and_grad']:.3f}",
+            f"{r['throughput']['forward'] / 1e6:.2f}",
+            f"{r['throughput']['value_and_grad'] / 1e6:.2f}",
+            f"{r['efficiency_per_device']['forward']:.2f}",
+            f"{r['efficiency_per_device']['value_and_grad']:.2f}",
+            f"{r['compile_s']['forward']:.1f} / {r['compile_s']['value_and_grad']:.1f}",
+            " / ".join(f"{m:.0f}" for m in r["peak_rss_mb"]),
+        ]
+        for r in data["rows"]
+    ]
+    headers = [
+        "processes",
+        "devices each",
+        "forward, s",
+        "value and gradient, s",
+        "forward, 10⁶ trajectory-steps/s",
+        "gradient, 10⁶ trajectory-steps/s",
+        "efficiency per device, forward",
+        "efficiency per device, gradient",
+        "compile forward / gradient, s",
+        "peak RSS per process, MB",
+    ]
+    compared = [r for r in data["rows"] if "jit_vmap_over_vmap_over_devices" in r]
+    routes = "".join(
+        f" With {r['devices']} devices in one process, `jit(vmap(...))` of the sharded batch took "
+        f"{r['jit_vmap_over_vmap_over_devices']:.1f}× the time of `vmap_over_devices`."
+        for r in compared
+    )
+    return (
+        _measured_on(data)
+        + f" Batch {data['batch']} × {data['steps']} steps, h = {data['h']}, median of {data['rounds']} rounds."
+        + routes
+        + "\n\n"
+        + _table(headers, rows)
+    )
+
+
 def xla_codegen_table(_entries=None, root: Path | None = None) -> str:
     """`xla_codegen.py`: compile and run time with XLA's older CPU code
     generator over its default."""
@@ -616,6 +663,7 @@ OTHER_SOURCES = (
     "stage_layout.json",
     "against_revision.json",
     "gradients.json",
+    "ensembles.json",
     "round_off.json",
     "work_precision.json",
     "long_time.json",
@@ -649,6 +697,7 @@ TABLES = {
     "root_finders": root_finders_table,
     "against_revision": against_revision_table,
     "gradients": gradients_table,
+    "ensembles": ensembles_table,
     "xla_codegen": xla_codegen_table,
 }
 

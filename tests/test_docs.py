@@ -74,6 +74,10 @@ PAGES = {
     ],
     "concepts/diffrax.md": ["assert sol.ys.fiber.shape == (7, 3)"],
     "concepts/batches.md": ["assert ys.fiber.shape == (n, 11, 3)"],
+    "concepts/many-machines.md": [
+        "assert isinstance(mine.fiber, np.ndarray) and mine.fiber.shape == (n, 3)",
+        "assert float(worst) == np.max(np.abs(mine.fiber)) and gradient.shape == (3,)",
+    ],
     "concepts/tableaus.md": ["assert order8.order == 8 and order4.order == 4"],
 }
 
