@@ -50,16 +50,28 @@ SCRIPT = textwrap.dedent(
             for a, b, c in zip(jax.tree.leaves(pk.local_rows(sharded)), jax.tree.leaves(pk.gather(sharded)), jax.tree.leaves(sharded)):
                 assert isinstance(a, np.ndarray) and np.array_equal(a, b) and np.array_equal(a, np.asarray(c))
 
-    # A shared argument and a gradient summed over the devices.
-    def loss(inertia, y0s, run):
-        return jnp.mean(run(y0s, inertia).fiber[:, -1, 0] * jnp.arange(1.0, 9.0))
+    # A shared argument and a gradient summed over the devices, through the
+    # stored steps and through ReversibleGradient.
+    def loss(inertia, y0s, map_over_batch, gradient):
+        def final_moment(y0, inertia):
+            return pk.integrate(method, field, y0, 0.0, 0.01, 100, inertia, gradient=gradient).ys.fiber[-1]
+
+        return jnp.mean(map_over_batch(final_moment, in_axes=(0, None))(y0s, inertia)[:, 0] * jnp.arange(1.0, 9.0))
 
     shared = jnp.asarray(INERTIA)
-    value_and_grad = jax.jit(jax.value_and_grad(loss), static_argnums=2)
-    plain = value_and_grad(shared, y0s, jax.vmap(scan_run, in_axes=(0, None)))
-    sharded = value_and_grad(shared, pk.shard_batch(y0s), pk.vmap_over_devices(scan_run, in_axes=(0, None)))
-    for a, b in zip(plain, sharded):
-        assert np.abs(np.asarray(a) - np.asarray(b)).max() <= 1e-12 * np.abs(np.asarray(a)).max(), (plain, sharded)
+    value_and_grad = jax.jit(jax.value_and_grad(loss), static_argnums=(2, 3))
+    for gradient in (None, pk.ReversibleGradient()):
+        plain = value_and_grad(shared, y0s, jax.vmap, gradient)
+        sharded = value_and_grad(shared, pk.shard_batch(y0s), pk.vmap_over_devices, gradient)
+        for a, b in zip(plain, sharded):
+            assert np.abs(np.asarray(a) - np.asarray(b)).max() <= 1e-12 * np.abs(np.asarray(a)).max(), (plain, sharded)
+
+    # float32 throughout.
+    y0s_32, inertias_32 = jax.tree.map(lambda a: a.astype(jnp.float32), (y0s, inertias))
+    plain = jax.jit(jax.vmap(scan_run))(y0s_32, inertias_32)
+    sharded = jax.jit(pk.vmap_over_devices(scan_run))(pk.shard_batch(y0s_32), pk.shard_batch(inertias_32))
+    assert sharded.fiber.dtype == jnp.float32
+    assert np.abs(np.asarray(plain.fiber) - np.asarray(sharded.fiber)).max() <= 1e-5
 
     # The run-time checks still raise on each device's rows.
     broken = pk.shard_batch(eqx.tree_at(lambda y: y.fiber, y0s, y0s.fiber.at[5, 0].set(jnp.nan)))
