@@ -73,7 +73,7 @@ def _final_state(path, steps):
         def through_diffeqsolve(q0, pi0, inertia):
             y0 = pk.BundleElement(pk.SO3(q0), pi0)
             term, solver = pk.PRKMKTerm(scene), pk.PRKMKSolver(method)
-            adjoint = pk.ReversibleAdjoint() if path.endswith("ReversibleAdjoint") else diffrax.RecursiveCheckpointAdjoint()
+            adjoint = pk.ReversibleAdjoint(None) if path.endswith("ReversibleAdjoint") else diffrax.RecursiveCheckpointAdjoint()
             sol = diffrax.diffeqsolve(term, solver, 0.0, steps * H, H, y0, inertia, max_steps=steps, adjoint=adjoint)
             return sol.ys.base.matrix[-1], sol.ys.fiber[-1]
 

@@ -53,10 +53,13 @@ class ReversibleGradient(eqx.Module):
     max_reconstruction_error: float | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
-        k = self.checkpoint_every
-        if k is not None and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
-            raise ValueError(f"checkpoint_every must be None or an int ≥ 1, got {k!r}.")
+        _check_checkpoint_every(self.checkpoint_every)
         _check_max_reconstruction_error(self.max_reconstruction_error)
+
+
+def _check_checkpoint_every(k) -> None:
+    if k is not None and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
+        raise ValueError(f"checkpoint_every must be None or an int ≥ 1, got {k!r}.")
 
 
 def _check_max_reconstruction_error(tol) -> None:
@@ -291,9 +294,15 @@ class ReversibleAdjoint(diffrax.AbstractAdjoint):
     adjoint=ReversibleAdjoint())`. The forward solve keeps its last state
     only; the backward pass undoes its steps from there to y0 (which it
     compares the rebuilt y0 with, as `ReversibleGradient` compares each kept
-    state). Memory does not grow with the number of steps, and the
-    reconstruction runs over the whole solve: for a long or chaotic one,
-    `integrate` with `ReversibleGradient(checkpoint_every=...)` bounds it.
+    state).
+
+    - `checkpoint_every`: the forward solve also keeps the state after every
+      K-th step, in a buffer of `max_steps // K` states (so `diffeqsolve`
+      needs `max_steps`), and the backward pass rebuilds each stretch of K
+      steps from the kept state at its end, comparing its rebuilt start
+      with the kept one: the reconstruction error cannot grow over more
+      than K steps. None keeps the last state only: memory independent of
+      `max_steps`, and the reconstruction runs over the whole solve.
 
     It takes what a fixed-step solve to t1 is: `PRKMKSolver` (not adaptive) of
     a method that `undoing_method` accepts, `ConstantStepSize` with `dt0`,
@@ -309,9 +318,11 @@ class ReversibleAdjoint(diffrax.AbstractAdjoint):
       of the state's dtype.
     """
 
+    checkpoint_every: int | None = eqx.field(static=True, default=1000)
     max_reconstruction_error: float | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
+        _check_checkpoint_every(self.checkpoint_every)
         _check_max_reconstruction_error(self.max_reconstruction_error)
 
     def loop(
@@ -345,6 +356,11 @@ class ReversibleAdjoint(diffrax.AbstractAdjoint):
             raise ValueError("ReversibleAdjoint does not take an event.")
         if passed_solver_state or passed_controller_state:
             raise ValueError("ReversibleAdjoint does not take a solver_state or controller_state: the solve starts afresh.")
+        if self.checkpoint_every is not None and max_steps is None:
+            raise ValueError(
+                "ReversibleAdjoint(checkpoint_every=K) keeps max_steps // K states and needs diffeqsolve's max_steps; "
+                "give max_steps, or checkpoint_every=None to keep the last state only."
+            )
         y0 = init_state.y
         init_state = eqx.tree_at(lambda s: s.y, init_state, object())
         # The stage slopes carried in the solver state only start the stages.
@@ -400,26 +416,60 @@ def _while_loop(cond_fun, body_fun, init_val, **kwargs):
     return jax.lax.while_loop(cond_fun, body_fun, init_val)
 
 
-@eqx.filter_custom_vjp
-def _diffrax_loop(y_args_terms, *, self, undo, init_state, **kwargs):
+def _keeping_every(every: int, kept: list):
+    """diffrax's step loop as `_while_loop` does it, also keeping the state
+    after steps K, 2K, … (K = `every`) in a buffer of max_steps // K states,
+    which it appends to `kept` (the loop's caller reads it from there)."""
+
+    def outer_while_loop(cond_fun, body_fun, init_val, *, max_steps, **kwargs):
+        del kwargs
+        slots = max_steps // every
+
+        def body(carry):
+            state, buffer = carry
+            state = body_fun(state)
+            k = state.num_steps
+            # Steps that end off the grid of K write out of bounds: dropped.
+            slot = jnp.where(k % every == 0, k // every - 1, slots)
+            return state, jax.tree.map(lambda b, y: b.at[slot].set(y, mode="drop"), buffer, state.y)
+
+        buffer = jax.tree.map(lambda y: jnp.zeros((slots,) + jnp.shape(y), jnp.result_type(y)), init_val.y)
+        final_state, buffer = jax.lax.while_loop(lambda carry: cond_fun(carry[0]), body, (init_val, buffer))
+        kept.append(buffer)
+        return final_state
+
+    return outer_while_loop
+
+
+def _run_diffrax_loop(y_args_terms, outer_while_loop, *, self, undo, init_state, **kwargs):
+    del undo
     y0, args, terms = y_args_terms
     init_state = eqx.tree_at(lambda s: s.y, init_state, y0)
-    loops = dict(inner_while_loop=_while_loop, outer_while_loop=_while_loop)
+    loops = dict(inner_while_loop=_while_loop, outer_while_loop=outer_while_loop)
     return self._loop(args=args, terms=terms, init_state=init_state, event=None, **loops, **kwargs)
+
+
+@eqx.filter_custom_vjp
+def _diffrax_loop(y_args_terms, **kwargs):
+    return _run_diffrax_loop(y_args_terms, _while_loop, **kwargs)
 
 
 @_diffrax_loop.def_fwd
 def _diffrax_loop_fwd(perturbed, y_args_terms, **kwargs):
     del perturbed
-    final_state, aux_stats = _diffrax_loop(y_args_terms, **kwargs)
-    return (final_state, aux_stats), (final_state.y, final_state.num_steps)
+    every, kept = kwargs["self"].checkpoint_every, []
+    final_state, aux_stats = _run_diffrax_loop(y_args_terms, _while_loop if every is None else _keeping_every(every, kept), **kwargs)
+    return (final_state, aux_stats), (final_state.y, final_state.num_steps, kept[0] if kept else None)
 
 
 @_diffrax_loop.def_bwd
 def _diffrax_loop_bwd(residuals, grad_out, perturbed, y_args_terms, *, self, undo, solver, t0, t1, dt0, **kwargs):
-    """Walk back from the last state over every step the solve took."""
+    """Walk back from the last state over every step the solve took; with
+    checkpoints, each stretch of K steps from the state kept at its end."""
     del perturbed, kwargs
-    y_last, num_steps = residuals
+    y_last, num_steps, kept = residuals
+    # No state kept (max_steps < K) is no checkpoint.
+    every = self.checkpoint_every if kept is not None and jax.tree.leaves(kept)[0].shape[0] > 0 else None
     y0, args, terms = y_args_terms
     grad_ys = None if grad_out[0] is None else grad_out[0].save_state.ys
     if grad_ys is None:
@@ -436,19 +486,31 @@ def _diffrax_loop_bwd(residuals, grad_out, perturbed, y_args_terms, *, self, und
         return direction * start, direction * end, direction * (end - start)
 
     def back_one_step(carry):
-        k, y_next, cotangent, params_grad, undo_carried, result = carry
+        k, y_next, cotangent, params_grad, undo_carried, result, worst = carry
+        if every is not None:
+            # A step that ends at a kept state (not the last) starts its
+            # stretch's reconstruction there, once its rebuilt value is checked.
+            end = k + 1
+            at_kept = (end % every == 0) & (end < num_steps)
+            kept_state = jax.tree.map(lambda b: b[jnp.clip(end // every - 1, 0, b.shape[0] - 1)], kept)  # any slot where not at_kept
+            worst = jnp.where(at_kept, jnp.maximum(worst, _reconstruction_gap(y_next, kept_state)), worst)
+            y_next = jax.tree.map(lambda a, b: jnp.where(at_kept, b, a), y_next, kept_state)
         s_start, s_end, h = step_times(k)
         y_prev, cotangent, params_step, undo_carried, result = _step_back(
             method, undo, params_dynamic, params_static, s_start, s_end, h, y_next, cotangent, undo_carried, result
         )
-        return k - 1, y_prev, cotangent, jax.tree.map(jnp.add, params_grad, params_step), undo_carried, result
+        return k - 1, y_prev, cotangent, jax.tree.map(jnp.add, params_grad, params_step), undo_carried, result, worst
 
     undo_carried = undo.initial_carried(field, direction * t1, y_last, args)
-    init = (num_steps - 1, y_last, cotangent, jax.tree.map(jnp.zeros_like, params_dynamic), undo_carried, RESULTS.successful)
-    _, rebuilt, cotangent, params_grad, _, result = jax.lax.while_loop(lambda carry: carry[0] >= 0, back_one_step, init)
+    params_grad0 = jax.tree.map(jnp.zeros_like, params_dynamic)
+    worst0 = jnp.zeros((), jnp.result_type(*jax.tree.leaves(y0)))
+    init = (num_steps - 1, y_last, cotangent, params_grad0, undo_carried, RESULTS.successful, worst0)
+    _, rebuilt, cotangent, params_grad, _, result, worst = jax.lax.while_loop(lambda carry: carry[0] >= 0, back_one_step, init)
+    worst = jnp.maximum(worst, _reconstruction_gap(rebuilt, y0))
     tolerance = _tolerance(self.max_reconstruction_error, y0)
-    remedy = "integrate with ReversibleGradient(checkpoint_every=...) instead"
-    cotangent, (args_grad, field_grad) = _checked(
-        (cotangent, params_grad), result, _reconstruction_gap(rebuilt, y0), tolerance, "the whole solve", remedy
-    )
+    if every is None:
+        stretch, remedy = "the whole solve", "give ReversibleAdjoint a checkpoint_every"
+    else:
+        stretch, remedy = f"{every} steps", "give a smaller checkpoint_every"
+    cotangent, (args_grad, field_grad) = _checked((cotangent, params_grad), result, worst, tolerance, stretch, remedy)
     return cotangent, args_grad, None if field_grad is None else field_grad.terms

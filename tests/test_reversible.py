@@ -221,25 +221,38 @@ def test_reversible_adjoint_equals_recursive_checkpointing(name):
         return jax.jit(jax.grad(_solve_loss(method, field, 1.23, 0.05, adjoint), argnums=(0, 1)))(Y0, args)
 
     reference = gradient(diffrax.RecursiveCheckpointAdjoint())
-    assert _relative_gap(reference, gradient(pk.ReversibleAdjoint())) <= 1e-10
+    assert _relative_gap(reference, gradient(pk.ReversibleAdjoint(checkpoint_every=None))) <= 1e-10
+    # Stretches of 5 steps: 24 whole steps and a partial one, the last stretch short.
+    assert _relative_gap(reference, gradient(pk.ReversibleAdjoint(checkpoint_every=5))) <= 1e-10
 
 
-def test_reversible_adjoint_memory_does_not_grow_with_the_number_of_steps():
+@pytest.mark.parametrize("every", [None, 1000])
+def test_reversible_adjoint_memory_does_not_grow_with_the_number_of_steps(every):
+    """The kept states are max_steps // K, whatever the number of steps."""
     method = FREE.splitting()
 
     def temp_bytes(num_steps):
-        grad = jax.jit(jax.grad(_solve_loss(method, FREE, num_steps * 0.01, 0.01, pk.ReversibleAdjoint()), argnums=1))
+        grad = jax.jit(jax.grad(_solve_loss(method, FREE, num_steps * 0.01, 0.01, pk.ReversibleAdjoint(every)), argnums=1))
         return grad.lower(Y0, INERTIA).compile().memory_analysis().temp_size_in_bytes
 
     small, large = temp_bytes(100), temp_bytes(10_000)
     assert large <= 1.5 * small, (small, large)
 
 
-def test_reversible_adjoint_checks_the_rebuilt_initial_state():
-    """The chaotic heavy top over 8000 steps of 0.05 cannot be rebuilt to √ε."""
-    loss = _solve_loss(TOP.splitting(), TOP, 400.0, 0.05, pk.ReversibleAdjoint())
-    with pytest.raises(Exception, match="max_reconstruction_error"):
-        jax.block_until_ready(jax.jit(jax.grad(loss, argnums=1))(Y0, TOP_ARGS))
+def test_reversible_adjoint_checks_the_rebuilt_states():
+    """The chaotic heavy top over 8000 steps of 0.05 cannot be rebuilt to √ε
+    from its last state, nor over stretches of 4000 steps; over stretches of
+    100 it can, and the gradient is the stored steps' one."""
+    method = TOP.splitting()
+
+    def gradient(adjoint):
+        return jax.block_until_ready(jax.jit(jax.grad(_solve_loss(method, TOP, 400.0, 0.05, adjoint), argnums=1))(Y0, TOP_ARGS))
+
+    for every, stretch in ((None, "the whole solve"), (4000, "4000 steps")):
+        with pytest.raises(Exception, match=f"max_reconstruction_error.*{stretch}"):
+            gradient(pk.ReversibleAdjoint(checkpoint_every=every))
+    reference = gradient(diffrax.RecursiveCheckpointAdjoint())
+    assert _relative_gap(reference, gradient(pk.ReversibleAdjoint(checkpoint_every=100))) <= 1e-8
 
 
 def test_reversible_adjoint_refusals():
@@ -261,6 +274,10 @@ def test_reversible_adjoint_refusals():
         solve(method=pk.Composition(method, pk.yoshida_triple_jump))
     with pytest.raises(ValueError, match="max_reconstruction_error"):
         pk.ReversibleAdjoint(max_reconstruction_error=0.0)
+    with pytest.raises(ValueError, match="checkpoint_every"):
+        pk.ReversibleAdjoint(checkpoint_every=0)
+    with pytest.raises(ValueError, match="needs diffeqsolve's max_steps"):
+        solve(max_steps=None)
 
 
 @pytest.mark.parametrize("t1, dt0", [(1.23, 0.05), (1.0, 0.1), (0.3, 0.5), (7.0, 0.013)])
