@@ -55,15 +55,6 @@ def _is_concrete(x) -> bool:
         return False
 
 
-def _check_args(args):
-    def check(leaf):
-        if eqx.is_inexact_array(leaf):
-            return eqx.error_if(leaf, ~jnp.all(jnp.isfinite(leaf)), "args contain a non-finite value (NaN or inf).")
-        return leaf
-
-    return jax.tree.map(check, args)
-
-
 def _static_count(name, value) -> int:
     """A step count as a Python int (NumPy integers accepted): it sets the
     scan's length, so it cannot be traced."""
@@ -179,7 +170,6 @@ def _checked_start(method, vector_field, y, t, dt, args):
     dtype = jnp.result_type(*jax.tree.leaves(y))
     t = jnp.asarray(t, dtype)
     dt = _checked_dt(dt, dtype)
-    args = _check_args(args)
     method.check_fits(vector_field)
     args = checked_field_args(vector_field, args)
     method.check_vector_field(vector_field, t, y, args)

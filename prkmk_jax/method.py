@@ -60,8 +60,16 @@ class AbstractFieldOnBundle(eqx.Module):
 
 
 def checked_field_args(vector_field: VectorField, args: PyTree) -> PyTree:
-    """`args` after the field's own checks where the field is a scene (an
-    `AbstractFieldOnBundle`); a plain function's `args` as they are."""
+    """`args` checked as both drivers (`integrate`, `PRKMKSolver`) check them
+    before a run: every floating leaf finite (a run-time check), then the
+    field's own checks where the field is a scene (an `AbstractFieldOnBundle`)."""
+
+    def finite(leaf):
+        if eqx.is_inexact_array(leaf):
+            return eqx.error_if(leaf, ~jnp.all(jnp.isfinite(leaf)), "args contain a non-finite value (NaN or inf).")
+        return leaf
+
+    args = jax.tree.map(finite, args)
     if isinstance(vector_field, AbstractFieldOnBundle):
         return vector_field.checked_args(args)
     return args

@@ -228,6 +228,12 @@ RUNTIME = {
         jnp.array([[1.0, 0.1, 0.0], [0.0, 0.8, 0.0], [0.0, 0.0, 0.4]]),
         "symmetric and positive definite",
     ),
+    "diffeqsolve, free body, an infinite moment": (
+        lambda i: _diffeqsolve(term=pk.PRKMKTerm(FREE_BODY), args=i),
+        jnp.array([1.0, jnp.inf, 0.4]),
+        "args contain a non-finite value",
+    ),
+    "diffeqsolve, args not finite": (lambda a: _diffeqsolve(args=a), jnp.array([1.0, jnp.nan, 1.0]), "args contain a non-finite value"),
     "diffeqsolve, free body, a negative moment": (
         lambda i: _diffeqsolve(term=pk.PRKMKTerm(FREE_BODY), args=i),
         jnp.array([-1.0, 0.8, 0.4]),
