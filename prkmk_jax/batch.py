@@ -63,7 +63,12 @@ def shard_batch(batch: PyTree, devices: Sequence[jax.Device] | None = None) -> P
             raise ValueError(f"every process must pass the same number of rows to shard_batch; they hold {held}.")
     if local_devices == 0 or rows % local_devices:
         raise ValueError(f"this process's batch of {rows} rows does not split evenly over its {local_devices} device(s) in the mesh.")
-    return jax.tree.map(lambda leaf: jax.make_array_from_process_local_data(sharding, np.asarray(leaf)), batch)
+
+    def placed(leaf):
+        # A JAX array goes as it is: no trip through the host where it is on a device already.
+        return jax.make_array_from_process_local_data(sharding, leaf if isinstance(leaf, jax.Array) else np.asarray(leaf))
+
+    return jax.tree.map(placed, batch)
 
 
 def vmap_over_devices(
