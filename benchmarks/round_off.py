@@ -19,6 +19,11 @@ log(median) against log N over N ≥ 10⁴. A random walk of roundings gives
 * Heavy top (T*SO(3), inertia (1, 0.8, 0.4), lever (0.1, 0.2, 0.9)):
   Symmetrized SV; its energy and vertical momentum errors are the
   method's (truncation, not rounding); QᵀQ is rounding.
+* The exact-flow splittings (explicit, stages "explicit"): Strang and
+  Kahan–Li 8 on the free body, Strang on the heavy top. Each sub-flow is a
+  rotation or a kick that keeps |Π| (the free body), the vertical momentum
+  (the top) and the group in exact arithmetic; their energy errors are
+  truncation.
 * Against diffrax's Dopri8 at equal cost: Dopri8 on the embedding ℝ⁹×ℝ³
   with the constant step at which it costs what SV does per unit of
   simulated time (both timed here, vmapped over the same batch), over
@@ -31,6 +36,7 @@ implicit iterations a step, and their ratios.
 
     python benchmarks/round_off.py --out benchmarks/results
     python benchmarks/round_off.py --quick
+    python benchmarks/round_off.py --splittings-only   # their rows, into the results of an earlier run on this machine
 """
 
 import json
@@ -72,6 +78,14 @@ def methods(setting):
         "Symmetrized Lobatto 4": ("free body", pk.Symmetrized(prkmk(pk.lobatto_iiia_iiib4))),
         "Symmetrized SV, heavy top": ("heavy top", pk.Symmetrized(prkmk(pk.stormer_verlet))),
     }
+
+
+SPLITTINGS = {
+    "splitting (Strang)": ("free body", FREE.splitting()),
+    "splitting Kahan–Li 8": ("free body", FREE.splitting(pk.kahan_li_8)),
+    "splitting (Strang), heavy top": ("heavy top", TOP.splitting()),
+}
+"""name -> (scene name, method): explicit, so one setting ("explicit")."""
 
 
 def initial_states(batch, seed=0, dtype=jnp.float64):
@@ -249,6 +263,11 @@ def main(argv=None):
     def extra(parser):
         parser.add_argument("--max-steps", type=float, default=1e6, help="steps of the growth runs (default 1e6)")
         parser.add_argument("--long-steps", type=float, default=1e7, help="steps of the longest run, SV exp at round-off (default 1e7)")
+        parser.add_argument(
+            "--splittings-only",
+            action="store_true",
+            help="run the splittings' growth rows only and put them into the results file of an earlier run on this machine",
+        )
 
     args, out = C.cli(__doc__, argv, extra)
     quick = args.quick
@@ -256,6 +275,29 @@ def main(argv=None):
     long_steps = 4_000 if quick else int(args.long_steps)
     batch = 2 if quick else 16
     every = 1000
+
+    def splitting_rows():
+        rows = []
+        for name, (scene_name, method) in SPLITTINGS.items():
+            errors, seconds = growth(method, scene_name, max_steps, batch, every)
+            row = dict(method=name, scene=scene_name, setting="explicit", dtype="float64", batch=batch, steps=max_steps, seconds=seconds)
+            row, summary = growth_row(row, errors, every)
+            rows.append(row)
+            print(f"{name:28s} {'explicit':10s} {max_steps:9d} {seconds:7.1f}  {summary}", flush=True)
+        return rows
+
+    if args.splittings_only:
+        with open(out / "round_off.json") as f:
+            earlier = json.load(f)
+        if earlier["machine"] != C.machine():
+            raise SystemExit(f"{out / 'round_off.json'} was measured on another machine or jax version; run the whole script instead.")
+        if {(r["batch"], r["steps"]) for r in earlier["growth"] if r["dtype"] == "float32"} != {(batch, max_steps)}:
+            raise SystemExit("--splittings-only takes the earlier run's batch and --max-steps.")
+        kept = [r for r in earlier["growth"] if r["method"] not in SPLITTINGS]
+        earlier["growth"] = kept + splitting_rows()
+        with open(out / "round_off.json", "w") as f:
+            json.dump(earlier, f, indent=1)
+        return
     by_setting = {setting: methods(setting) for setting in SETTINGS}
     growth_rows = []
     print(f"{'method':28s} {'setting':10s} {'steps':>9s} {'s':>7s}  invariant: median max error (exponent)")
@@ -276,6 +318,7 @@ def main(argv=None):
         row, summary = growth_row(row, errors, every)
         growth_rows.append(row)
         print(f"{'SV exp, float32':28s} {setting:10s} {max_steps:9d} {seconds:7.1f}  {summary}", flush=True)
+    growth_rows += splitting_rows()
 
     probe = 500 if quick else 20_000
     dopri_errors, dopri_dt, dopri_cost = dopri8_at_equal_cost(by_setting["round-off"]["SV exp"][1], max_steps, batch, every, probe)

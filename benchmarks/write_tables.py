@@ -295,7 +295,7 @@ def round_off_table(_entries=None, root: Path | None = None) -> str:
     """`round_off.py`'s results: how each invariant's error grows with the
     number of steps (the largest error at the last step and the fitted
     exponent), for the stages solved to round-off and stopped at the
-    tolerance, and Dopri8 at equal cost."""
+    tolerance, for the explicit splittings, and Dopri8 at equal cost."""
     data = results_file("round_off.json", root)
 
     def growth(run):
