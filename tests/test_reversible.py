@@ -222,8 +222,9 @@ def test_reversible_adjoint_equals_recursive_checkpointing(name):
 
     reference = gradient(diffrax.RecursiveCheckpointAdjoint())
     assert _relative_gap(reference, gradient(pk.ReversibleAdjoint(checkpoint_every=None))) <= 1e-10
-    # Stretches of 5 steps: 24 whole steps and a partial one, the last stretch short.
-    assert _relative_gap(reference, gradient(pk.ReversibleAdjoint(checkpoint_every=5))) <= 1e-10
+    if name in ("PRKMK SV", "heavy top, splitting"):  # the checkpoints do not depend on the method: two families
+        # Stretches of 5 steps: 24 whole steps and a partial one, the last stretch short.
+        assert _relative_gap(reference, gradient(pk.ReversibleAdjoint(checkpoint_every=5))) <= 1e-10
 
 
 @pytest.mark.parametrize("every", [None, 1000])
