@@ -77,7 +77,7 @@ def worker(processes, devices, process_id, port, batch, steps, rounds, compare_r
     def loss(i, y):
         return jnp.mean(ensemble(y, i).fiber @ weights)
 
-    fns = {"forward": lambda y, i: ensemble(y, i), "value_and_grad": lambda y, i: jax.value_and_grad(loss)(i, y)}
+    fns = {"forward": ensemble, "value_and_grad": lambda y, i: jax.value_and_grad(loss)(i, y)}
     if compare_routes:
         fns["forward, jit(vmap)"] = jax.vmap(run, in_axes=(0, None))
     compiled, compile_s = {}, {}

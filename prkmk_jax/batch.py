@@ -150,6 +150,6 @@ def local_rows(tree: PyTree) -> PyTree:
 def _leading_size(tree: PyTree, caller: str) -> int:
     shapes = [np.shape(leaf) for leaf in jax.tree.leaves(tree)]
     sizes = {shape[0] for shape in shapes if shape}
-    if not shapes or len(sizes) != 1 or any(not shape for shape in shapes):
+    if len(sizes) != 1 or any(not shape for shape in shapes):
         raise ValueError(f"{caller} needs array leaves with one common leading batch axis; got shapes {shapes}.")
     return sizes.pop()

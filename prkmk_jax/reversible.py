@@ -292,9 +292,9 @@ class ReversibleAdjoint(diffrax.AbstractAdjoint):
     """Gradients of `diffrax.diffeqsolve` with `PRKMKSolver` by reconstructing
     the states backwards (module docstring): `diffeqsolve(...,
     adjoint=ReversibleAdjoint())`. The forward solve keeps its last state
-    only; the backward pass undoes its steps from there to y0 (which it
-    compares the rebuilt y0 with, as `ReversibleGradient` compares each kept
-    state).
+    and the checkpoints below; the backward pass undoes its steps from there
+    to y0 (which it compares the rebuilt y0 with, as `ReversibleGradient`
+    compares each kept state).
 
     - `checkpoint_every`: the forward solve also keeps the state after every
       K-th step, in a buffer of `max_steps // K` states (so `diffeqsolve`
