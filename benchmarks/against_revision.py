@@ -12,9 +12,13 @@ the same final states (≤ 1e-11 in float64, 1e-4 in float32), and then timed
 in alternation. Columns: ns per trajectory-step of each, the median of the
 per-round ratios now/before, and the compile times.
 
-Paths: `integrate` (lax.scan), `diffeqsolve(PRKMKSolver)`, and
-`value_and_grad` of a loss on the final state with respect to the inertia
-through `integrate`.
+Methods: a PRKMK tableau with exp or Cayley coordinates, or the free
+body's exact-flow splitting ("splitting": Strang; "splitting kahan_li_8":
+composed to order 8). Paths: `integrate` (lax.scan) vmapped over the batch,
+`in_state` (the batch as leading axes of the state, one run),
+`diffeqsolve(PRKMKSolver)`, and `value_and_grad` of a loss on the final
+state with respect to the inertia through `integrate` (vmapped), through
+its stored steps or (`reversible_grad`) by `ReversibleGradient(None)`.
 
     python benchmarks/against_revision.py --rev a1a3087 --out benchmarks/results
     python benchmarks/against_revision.py --quick          # against HEAD
@@ -53,6 +57,9 @@ def import_revision(rev: str):
 
 def _method(lib, tableau, coordinates):
     coords = lib.Exp() if coordinates == "exp" else lib.Cayley()
+    if tableau.startswith("splitting"):
+        composition = tableau.removeprefix("splitting").strip()
+        return lib.scenes.FreeRigidBody().splitting(getattr(lib, composition) if composition else None, coords)
     return lib.PRKMK(lib.Cotangent(lib.SO3), coords, getattr(lib, tableau), form="body")
 
 
@@ -63,12 +70,15 @@ def _heavy_top(t, y, inertia):
 
 
 def _runs(lib, tableau, coordinates, steps, scene="free body"):
-    # Both fields read the state's arrays only, so one function serves both revisions.
+    # Both fields read the state's arrays only, so one function serves both
+    # revisions; a splitting integrates its own revision's scene.
     method, field = _method(lib, tableau, coordinates), (C.SCENE if scene == "free body" else _heavy_top)
+    if tableau.startswith("splitting"):
+        field = method.scene
 
-    def integrate(q0, pi0, inertia):
+    def integrate(q0, pi0, inertia, gradient=None):
         y0 = lib.BundleElement(lib.SO3(q0), pi0)
-        traj = lib.integrate(method, field, y0, 0.0, H, steps, inertia, save_every=steps)
+        traj = lib.integrate(method, field, y0, 0.0, H, steps, inertia, save_every=steps, gradient=gradient)
         return traj.ys.base.matrix[-1], traj.ys.fiber[-1]
 
     def diffeqsolve(q0, pi0, inertia):
@@ -78,15 +88,24 @@ def _runs(lib, tableau, coordinates, steps, scene="free body"):
         sol = diffrax.diffeqsolve(lib.PRKMKTerm(field), lib.PRKMKSolver(method), t0, t1, dt, y0, inertia, max_steps=steps)
         return sol.ys.base.matrix[-1], sol.ys.fiber[-1]
 
-    def value_and_grad(qs, pis, inertia):
+    def value_and_grad(qs, pis, inertia, gradient=None):
         def loss(inertia):
-            q, pi = jax.vmap(integrate, in_axes=(0, 0, None))(qs, pis, inertia)
+            q, pi = jax.vmap(lambda q, p: integrate(q, p, inertia, gradient))(qs, pis)
             return jnp.sum(q[..., 0, :] ** 2 * jnp.arange(3)) + jnp.sum(pi**2)
 
         return jax.value_and_grad(loss)(inertia)
 
+    def reversible_grad(qs, pis, inertia):
+        return value_and_grad(qs, pis, inertia, lib.ReversibleGradient(None))
+
     batched = lambda fn: jax.vmap(fn, in_axes=(0, 0, None))  # noqa: E731
-    return {"integrate": batched(integrate), "diffeqsolve": batched(diffeqsolve), "value_and_grad": value_and_grad}
+    return {
+        "integrate": batched(integrate),
+        "in_state": integrate,
+        "diffeqsolve": batched(diffeqsolve),
+        "value_and_grad": value_and_grad,
+        "reversible_grad": reversible_grad,
+    }
 
 
 def compare(before, tableau, coordinates, path, batch, dtype, steps, rounds, scene="free body"):
@@ -123,6 +142,7 @@ def main(argv=None):
         parser.add_argument("--rounds", type=int, default=9)
         parser.add_argument("--scene", default="", help="run only the cases of this scene ('free body' or 'heavy top')")
         parser.add_argument("--name", default="against_revision", help="stem of the results file")
+        parser.add_argument("--splittings", action="store_true", help="the exact-flow splittings' cases instead of PRKMK's")
 
     args, out = C.cli(__doc__, argv, arguments)
     before, sha = import_revision(args.rev)
@@ -132,6 +152,22 @@ def main(argv=None):
             ("lobatto_iiia_iiib6", "cayley", "integrate", 8, jnp.float64, "heavy top"),
         ]
         rounds, work = 2, 80
+    elif args.splittings:
+        cases = [
+            (method, coords, path, batch, jnp.float64, "free body")
+            for method, coords in (("splitting", "exp"), ("splitting", "cayley"), ("splitting kahan_li_8", "exp"))
+            for path in ("integrate", "in_state")
+            for batch in (1, 64, 1024)
+            if not (path == "in_state" and batch == 1)
+        ]
+        cases += [
+            (method, "exp", path, 64, jnp.float64, "free body")
+            for method in ("splitting", "splitting kahan_li_8")
+            for path in ("value_and_grad", "reversible_grad")
+        ]
+        cases += [("splitting", "exp", "in_state", 16384, jnp.float64, "free body")]
+        cases += [("splitting", "exp", path, b, jnp.float32, "free body") for path, b in (("integrate", 1), ("in_state", 1024))]
+        rounds, work = args.rounds, 200_000
     else:
         cases = [
             (tab, coords, path, batch, dtype, "free body")

@@ -17,20 +17,19 @@ scenes need two kinds:
   torque that depends on the attitude (and time) only: y·exp((0, hτ)).
 
 Flows act on the state packed as one array with its components first
-(`AbstractSplitScene.pack`): (d, *batch), each row one entry of the state.
-Every flow returns the whole array rebuilt: XLA then keeps each sub-step's
-result instead of recomputing the chain of cheap rotations inside every
-later one, and the rows are contiguous over the batch, the layout it
-vectorises (`benchmarks/splitting.py` measures both).
+(`AbstractSplitScene.pack`): (d, *batch), each row one entry of the state,
+contiguous over the batch: the layout XLA vectorises. A rotation's sine and
+cosine are computed once (`groups.computed_once`) and read by every row it
+turns; XLA fuses the rest of a step into few loops.
 """
 
 import abc
-import math
 from collections.abc import Callable
 from typing import Any, ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, PyTree
 
 from .bundles import BundleElement
@@ -38,22 +37,9 @@ from .coordinates import AbstractCoordinates
 from .groups.so3 import SO3
 from .method import AbstractFieldOnBundle
 
-VECTORISED_BATCH = 16
-"""From this many trajectories in the state on, rotations take their sines
-from `sincos` and `Splitting` computes each sub-step once (a barrier to
-XLA's fusion). Below it the step is one fused program with XLA's own sine
-and cosine, which for a few trajectories runs faster and compiles sooner.
-Under `jax.vmap` the state a step sees is one trajectory, so the vmapped
-step takes this path too."""
-
 Packed = Float[Array, "d *batch"]
 """A state packed with its components first: one row per entry (for T*SO(3):
 Q row-major, then Π), any batch axes after."""
-
-
-def is_vectorised(batch_shape: tuple[int, ...]) -> bool:
-    """Whether arrays of this batch shape hold at least `VECTORISED_BATCH` trajectories."""
-    return math.prod(batch_shape) >= VECTORISED_BATCH
 
 
 def rotated_rows(z: Packed, pairs: tuple[tuple[int, int], ...], sine: Array, cosine: Array) -> Packed:
@@ -78,17 +64,15 @@ class AbstractExactFlow(eqx.Module):
         once)."""
 
     always_materialised: eqx.AbstractClassVar[bool]
-    """Whether `Splitting` has XLA compute this flow's result once even for a
-    few trajectories: a flow of cheap arithmetic alone would otherwise be
-    recomputed inside each later sub-step that reads it (see
-    `VECTORISED_BATCH`)."""
+    """Whether `Splitting` has XLA compute this flow's result once: a flow
+    of cheap arithmetic alone would otherwise be recomputed inside each
+    later sub-step that reads it."""
 
     @abc.abstractmethod
-    def coefficients(self, coordinates: AbstractCoordinates, t: Array, z: Packed, h: Array, args: PyTree, vectorised: bool) -> PyTree:
+    def coefficients(self, coordinates: AbstractCoordinates, t: Array, z: Packed, h: Array, args: PyTree) -> PyTree:
         """What the flow over time `h` (either sign) does to `z`, the part
-        evaluated at time `t` (a part that depends on time is frozen there);
-        `vectorised`: compute sines with arithmetic XLA vectorises
-        (`VECTORISED_BATCH`). Its value must be the same at the flow's start
+        evaluated at time `t` (a part that depends on time is frozen there).
+        Its value must be the same at the flow's start
         and at its end (computed from what the flow conserves), so that a
         sub-step can be undone from its end (`Splitting.reverse_step`)."""
 
@@ -108,7 +92,7 @@ class AbstractExactFlow(eqx.Module):
     def flow(self, coordinates: AbstractCoordinates, t: Array, z: Packed, h: Array, args: PyTree) -> Packed:
         """The state `z` moved by the part's flow over time `h` (either sign),
         the part evaluated at time `t`."""
-        return self.moved(z, self.coefficients(coordinates, t, z, h, args, is_vectorised(z.shape[1:])))
+        return self.moved(z, self.coefficients(coordinates, t, z, h, args))
 
 
 class AxisRotation(AbstractExactFlow):
@@ -116,7 +100,7 @@ class AxisRotation(AbstractExactFlow):
     `pairs` turns by the angle h·`rate`(z, args), which this flow leaves
     constant (so the flow is exact for `Exp`, see the module docstring)."""
 
-    always_materialised: ClassVar[bool] = False  # pyright: ignore[reportIncompatibleVariableOverride]  # XLA computes a sine once
+    always_materialised: ClassVar[bool] = False  # pyright: ignore[reportIncompatibleVariableOverride]  # its sine and cosine are computed once
     axis: int = eqx.field(static=True)
     """The body axis, 0, 1 or 2."""
     pairs: tuple[tuple[int, int], ...] = eqx.field(static=True)
@@ -136,11 +120,11 @@ class AxisRotation(AbstractExactFlow):
         if self.axis not in (0, 1, 2):
             raise ValueError(f"axis must be 0, 1 or 2, got {self.axis!r}.")
 
-    def coefficients(self, coordinates, t, z, h, args, vectorised):
+    def coefficients(self, coordinates, t, z, h, args):
         """(sin, cos) of the planar rotation that the coordinate map gives the
         angle h·rate about the axis (`AbstractCoordinates.planar_rotation`):
         the exponential turns by that angle, the Cayley map by 2·atan(angle/2)."""
-        return coordinates.planar_rotation(h * self.rate(z, args), vectorised=vectorised)
+        return coordinates.planar_rotation(h * self.rate(z, args))
 
     def moved(self, z, coefficients):
         sine, cosine = coefficients
@@ -174,7 +158,7 @@ class MomentumKick(AbstractExactFlow):
     def reads_unmoved_rows_only(self) -> bool:
         return True  # `torque` must not read the rows it moves
 
-    def coefficients(self, coordinates, t, z, h, args, vectorised):
+    def coefficients(self, coordinates, t, z, h, args):
         """The change of the momentum rows, h·torque, shape (len(rows), *batch)."""
         return h * self.torque(t, z, args)
 
@@ -247,28 +231,41 @@ class InertiaOrderedFrame(eqx.Module):
         """v[σ] along the last axis: a body vector's components in this frame."""
         return jnp.take_along_axis(v, jnp.broadcast_to(self.order, jnp.shape(v)[:-1] + (3,)), axis=-1)
 
-    def _rows(self, z: Packed, matrix_rows: tuple[int, ...], vector_rows: tuple[int, ...]) -> Array:
-        """For each row of the relabelled state, the row of z it comes from."""
-        sigma = jnp.moveaxis(jnp.broadcast_to(self.order, z.shape[1:] + (3,)), -1, 0)
-        sources = [jnp.full(z.shape[1:], r, sigma.dtype) for r in range(z.shape[0])]
-        for first in matrix_rows:  # a matrix's columns, row-major
-            for r in range(3):
-                for a in range(3):
-                    sources[first + 3 * r + a] = first + 3 * r + sigma[a]
-        for first in vector_rows:
-            for a in range(3):
-                sources[first + a] = first + sigma[a]
-        return jnp.stack(sources)
+    def _rows(self, num_rows: int, matrix_rows: tuple[int, ...], vector_rows: tuple[int, ...]) -> Array:
+        """For each row of the relabelled state, the row of z it comes from:
+        shape (num_rows, *batch) for `order` of shape (*batch, 3). Written as
+        one elementwise expression in σ, so XLA computes it in one loop."""
+        blocks = [first + 3 * r for first in matrix_rows for r in range(3)] + list(vector_rows)
+        base = np.arange(num_rows)
+        picks = np.zeros((3, num_rows), base.dtype)  # picks[a, i] = 1: row i reads the block's σ(a)
+        for first in blocks:
+            base[first : first + 3] = first
+            picks[np.arange(3), first + np.arange(3)] = 1
+        sources = base + sum(picks[a] * self.order[..., a, None] for a in range(3))
+        return jnp.moveaxis(jnp.asarray(sources, self.order.dtype), -1, 0)
+
+    def _inverse(self) -> "InertiaOrderedFrame":
+        """The frame of σ⁻¹ (σ⁻¹(b) = the a with σ(a) = b), by arithmetic."""
+        inverse = sum(a * (self.order[..., a, None] == jnp.arange(3)) for a in range(3))
+        return InertiaOrderedFrame(jnp.asarray(inverse, self.order.dtype), self.parity)
 
     def relabel(self, z: Packed, matrix_rows: tuple[int, ...], vector_rows: tuple[int, ...]) -> Packed:
         """z with the columns of its matrices and the components of its
         vectors in this frame."""
-        return jnp.take_along_axis(z, self._rows(z, matrix_rows, vector_rows), axis=0)
+        return _rows_taken(z, self._rows(z.shape[0], matrix_rows, vector_rows))
 
     def restore(self, z: Packed, matrix_rows: tuple[int, ...], vector_rows: tuple[int, ...]) -> Packed:
         """Inverse of `relabel`: the relabelling by σ⁻¹."""
-        inverse = InertiaOrderedFrame(jnp.argsort(self.order, axis=-1), self.parity)
-        return inverse.relabel(z, matrix_rows, vector_rows)
+        return self._inverse().relabel(z, matrix_rows, vector_rows)
+
+
+def _rows_taken(z: Packed, sources: Array) -> Packed:
+    """z's rows permuted: row i of the result is row `sources[i]` of z, where
+    `sources` has shape (d,), one permutation for every trajectory (then
+    whole rows move), or (d, *batch), one per trajectory."""
+    if sources.ndim == 1:
+        return jnp.take(z, sources, axis=0, mode="clip")
+    return jnp.take_along_axis(z, jnp.broadcast_to(sources, z.shape), axis=0, mode="clip")
 
 
 def renormalized_rotations(z: Packed, first_rows: tuple[int, ...]) -> Packed:

@@ -36,8 +36,16 @@ from jaxtyping import PyTree
 from .bundles import BundleElement
 from .compositions import CompositionCoefficients
 from .coordinates import AbstractCoordinates, Exp
-from .exact_flows import AbstractSplitScene, is_vectorised, renormalized_rotations
+from .exact_flows import AbstractSplitScene, renormalized_rotations
+from .groups.trig import computed_once
 from .method import LOW_PRECISION_EPS, RESULTS, AbstractMethod, Step, Time, VectorField, flag_nonfinite
+
+FUSED_SUB_STEPS = 5
+"""At most this many sub-steps of a step are left to XLA to fuse; then
+their state is computed once (a barrier). Each rotated row reads two rows
+of the sub-step before, so a longer fused chain has XLA recompute earlier
+sub-steps many times over (a composed step has dozens), while a barrier
+after every sub-step costs more than it saves on a Strang step's five."""
 
 
 def sub_steps(num_parts: int, fractions: tuple[float, ...], merge: bool) -> tuple[tuple[int, float, float], ...]:
@@ -78,13 +86,11 @@ class Splitting(AbstractMethod):
       `AbstractCoordinates` (each rotation turned as its `planar_rotation` says).
 
     The method integrates `scene` only: `integrate`, `resume` and
-    `PRKMKSolver` refuse another vector field. For batches, give the
-    trajectories as leading axes of the state (one run of all of them): the
-    step packs the state with its components first, the layout XLA
-    vectorises, and from `exact_flows.VECTORISED_BATCH` trajectories on it
-    evaluates its sines by `sincos`. Under `jax.vmap` the step sees one
-    trajectory and the batch axis comes first: same values, slower at large
-    batches (`benchmarks/splitting.py`).
+    `PRKMKSolver` refuse another vector field. A batch runs as fast under
+    `jax.vmap` as with the trajectories as leading axes of the state (one
+    run of all of them): either way the step packs the state with its
+    components first, the layout XLA vectorises, and computes each
+    rotation's sine and cosine once (`groups.sincos`).
     """
 
     scene: AbstractSplitScene
@@ -146,14 +152,10 @@ class Splitting(AbstractMethod):
         t, dt = jnp.asarray(t, dtype), jnp.asarray(dt, dtype)
         flows = self.scene.exact_flows(args)
         z = self.scene.pack(y, args)
-        for part, start, step in self._sub_steps(len(flows)):
+        plan = self._sub_steps(len(flows))
+        for k, (part, start, step) in enumerate(plan, start=1):
             z = flows[part].flow(self.coordinates, t + start * dt, z, step * dt, args)
-            if is_vectorised(z.shape[1:]) or flows[part].always_materialised:
-                # Each sub-step's state is computed once: XLA would otherwise
-                # fuse the chain of cheap rotations (`sincos` is arithmetic) into
-                # its consumers and recompute every earlier one inside each
-                # later one. With XLA's sine, which it computes once, a few
-                # trajectories need no barrier (`exact_flows.VECTORISED_BATCH`).
+            if flows[part].always_materialised or (k % FUSED_SUB_STEPS == 0 and k < len(plan)):
                 z = jax.lax.optimization_barrier(z)
         if jnp.finfo(dtype).eps > LOW_PRECISION_EPS:
             # As `AbstractMethod.advance`: the rounding of each rotation is
@@ -198,9 +200,7 @@ class Splitting(AbstractMethod):
             def coefficients(z, args_dynamic, part=part, start=start, step=step):
                 args = eqx.combine(args_dynamic, args_static)
                 flow = self.scene.exact_flows(args)[part]
-                # Sines by arithmetic at any batch: each feeds several fused
-                # consumers here, and XLA recomputes its own sine in each.
-                return flow.coefficients(self.coordinates, t + start * dt, z, step * dt, args, vectorised=True)
+                return flow.coefficients(self.coordinates, t + start * dt, z, step * dt, args)
 
             flow = self.scene.exact_flows(args)[part]
             if flow.reads_unmoved_rows_only:
@@ -218,7 +218,7 @@ class Splitting(AbstractMethod):
             # Each sub-step's state and cotangent are computed once, at any
             # batch: fused across sub-steps, XLA's program and its compile
             # time grow far faster than the number of sub-steps.
-            z, cotangent_z = jax.lax.optimization_barrier((z, cotangent_z))
+            z, cotangent_z = computed_once(z, cotangent_z)
         y = self.scene.unpack(z, y_next, args)
         _, pull_pack = jax.vjp(lambda y: self.scene.pack(y, args), y)
         (cotangent_y,) = pull_pack(cotangent_z)

@@ -21,6 +21,7 @@ others are evaluated directly. Non-convergence is returned as a
 """
 
 import functools
+import math
 from typing import Any, Literal
 
 import equinox as eqx
@@ -34,12 +35,15 @@ from jaxtyping import PyTree
 
 from .bundles import AbstractBundle, AlgebraPair, BundleElement
 from .coordinates import AbstractCoordinates, Exp
-from .exact_flows import is_vectorised
 from .method import RESULTS, AbstractFieldOnBundle, AbstractMethod, Step, Time, VectorField, first_failure, flag_nonfinite
 from .stage_plan import COUPLED, Explicit, plan_stages, stage_dependence
 from .tableaus import PartitionedTableau, stormer_verlet
 
 STAGE_SLOPES_NAME = "prkmk_stage_slopes"
+
+STAGE_LOOP_BATCH = 16
+"""From this many trajectories in the state on, `explicit_stages="auto"`
+evaluates an explicit tableau's stages in a loop (`PRKMK`)."""
 
 
 class PRKMK(AbstractMethod):
@@ -93,7 +97,7 @@ class PRKMK(AbstractMethod):
       into every later stage that reads it, so an unrolled many-stage step
       on a batch recomputes early stages many times over, and the loop
       computes each once. `"auto"` (default) takes the loop for a state
-      carrying at least `exact_flows.VECTORISED_BATCH` trajectories, the
+      carrying at least `STAGE_LOOP_BATCH` trajectories, the
       unrolled stages otherwise; under `jax.vmap` the step sees one
       trajectory and keeps them unrolled, which is also the faster layout
       there (a vmapped loop indexes its slope arrays per trajectory).
@@ -297,7 +301,7 @@ class PRKMK(AbstractMethod):
         if self.explicit_stages != "auto":
             return self.explicit_stages == "loop"
         batch_shape = zeros[0].shape[: zeros[0].ndim - self.bundle.base.algebra_ndim]
-        return self.tableau.is_explicit and is_vectorised(batch_shape)
+        return self.tableau.is_explicit and math.prod(batch_shape) >= STAGE_LOOP_BATCH
 
     def _explicit_slopes_in_loop(self, vector_field, stage_slope, plan, t, y, dt, args, zeros):
         """The slopes of an explicit tableau, stage after stage in a

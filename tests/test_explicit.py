@@ -97,8 +97,8 @@ def test_auto_layout_follows_the_batch():
     auto = top.method(pk.dormand_prince_8, pk.Cayley())
     assert all(isinstance(p, Explicit) for p in auto.stage_plan(top, 0.0, TOP_Y0, TOP_ARGS))
     assert not _program_has_a_loop(auto, top, TOP_Y0, TOP_ARGS)
-    assert _program_has_a_loop(auto, top, _batch_state(pk.exact_flows.VECTORISED_BATCH), TOP_ARGS)
-    assert not _program_has_a_loop(auto, top, _batch_state(pk.exact_flows.VECTORISED_BATCH - 1), TOP_ARGS)
+    assert _program_has_a_loop(auto, top, _batch_state(pk.step.STAGE_LOOP_BATCH), TOP_ARGS)
+    assert not _program_has_a_loop(auto, top, _batch_state(pk.step.STAGE_LOOP_BATCH - 1), TOP_ARGS)
     forced = pk.PRKMK(top.bundle, pk.Cayley(), pk.dormand_prince_8, form="body", explicit_stages="loop")
     assert _program_has_a_loop(forced, top, TOP_Y0, TOP_ARGS)
 

@@ -70,7 +70,7 @@ class SquaredHalfCayley(pk.AbstractCoordinates):
     def semidirect_inverse_differential(self, bundle, U, X):
         return dual_number_inverse_differential(partial(self.group_inverse_differential, bundle.base), U, X)
 
-    def planar_rotation(self, angle, vectorised):
+    def planar_rotation(self, angle):
         # cay(aE/2) turns by 2·atan(a/4); its square by twice that.
         quarter = (0.5 * angle) ** 2 / 4.0
         sine, cosine = 0.5 * angle / (1.0 + quarter), (1.0 - quarter) / (1.0 + quarter)
@@ -98,7 +98,7 @@ def test_the_toy_map_is_what_it_says_on_so3():
     theta = float(jnp.linalg.norm(u))
     turned = pk.SO3.exp(u / theta * 4 * np.arctan(theta / 4)).matrix
     np.testing.assert_allclose(TOY_MAP.group_map(pk.SO3, u).matrix, turned, atol=1e-14)
-    sine, cosine = TOY_MAP.planar_rotation(jnp.asarray(theta), vectorised=False)
+    sine, cosine = TOY_MAP.planar_rotation(jnp.asarray(theta))
     np.testing.assert_allclose([sine, cosine], [np.sin(4 * np.arctan(theta / 4)), np.cos(4 * np.arctan(theta / 4))], atol=1e-15)
 
 

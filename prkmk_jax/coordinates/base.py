@@ -92,11 +92,13 @@ class AbstractCoordinates(eqx.Module):
         ψ_{σu} = dφ_{σu}, the tangent lift of φ)."""
 
     @abc.abstractmethod
-    def planar_rotation(self, angle: Array, vectorised: bool) -> tuple[Array, Array]:
+    def planar_rotation(self, angle: Array) -> tuple[Array, Array]:
         """(sin θ, cos θ) of the rotation f(angle·E), where E generates the
         rotations of one coordinate plane (E² = −1 on it): the exact sub-flows
-        of a splitting turn through these. `vectorised`: compute with
-        arithmetic XLA vectorises (`groups.sincos`) where a batch is large."""
+        of a splitting turn through these, each read by several rows of the
+        state. Computed with arithmetic XLA vectorises (`groups.sincos`), and
+        once (`groups.computed_once`) where that takes more than a few
+        operations."""
 
     @abc.abstractmethod
     def inverse_differential(self, bundle: AbstractBundle, U: AlgebraPair, X: AlgebraPair, method_order: int) -> AlgebraPair:

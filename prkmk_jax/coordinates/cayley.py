@@ -18,6 +18,7 @@ import equinox as eqx
 
 from ..bundles import AbstractSemidirect, AlgebraPair
 from ..groups.base import AbstractLieGroup, AbstractQuadraticGroup
+from ..groups.trig import computed_once
 from .base import AbstractCoordinates, Truncation, check_truncation
 
 
@@ -102,11 +103,11 @@ class Cayley(AbstractCoordinates):
             y_v = z - 0.5 * br(u, z) - 0.5 * br(x_v, w)
         return x_v, y_v
 
-    def planar_rotation(self, angle, vectorised):
+    def planar_rotation(self, angle):
         # cay(aE) turns by 2·atan(a/2): cos = (1 − a²/4)/(1 + a²/4), sin = a/(1 + a²/4).
         quarter = 0.25 * angle * angle
         scale = 1.0 / (1.0 + quarter)
-        return angle * scale, (1.0 - quarter) * scale
+        return computed_once(angle * scale, (1.0 - quarter) * scale)
 
     def inverse_differential(self, bundle, U, X, method_order):
         self.check_bundle(bundle)

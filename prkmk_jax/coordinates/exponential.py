@@ -3,7 +3,6 @@
 from typing import ClassVar
 
 import equinox as eqx
-import jax.numpy as jnp
 
 from ..groups.trig import sincos
 from ..series import default_truncation, dexp_inv_series
@@ -59,10 +58,8 @@ class Exp(AbstractCoordinates):
     def semidirect_inverse_differential(self, bundle, U, X):
         return dual_number_inverse_differential(bundle.base.dexp_inv, U, X)
 
-    def planar_rotation(self, angle, vectorised):
-        if vectorised:
-            return sincos(angle)
-        return jnp.sin(angle), jnp.cos(angle)
+    def planar_rotation(self, angle):
+        return sincos(angle)
 
     def inverse_differential(self, bundle, U, X, method_order):
         q = self.resolve_truncation(method_order)

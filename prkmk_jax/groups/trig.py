@@ -9,7 +9,9 @@ parts whose products with the quadrant count are exact) and Taylor
 polynomials there, with as many terms as the dtype needs; the quadrant then
 picks signs and swaps. Accurate to a few units in the last place for
 |angle| ≲ 10⁵ (float64) or 10³ (float32): a rotation per sub-step of a
-step, far beyond any angle an integrator takes.
+step, far beyond any angle an integrator takes. The pair comes back
+computed once (`computed_once`), so the rows of a rotation that read it do
+not each evaluate the polynomials again.
 """
 
 import math
@@ -29,6 +31,17 @@ _HALF_PI_PARTS = {
 # Taylor terms on |r| ≤ π/4: the first omitted term of sin (r^(2k+1)/(2k+1)!)
 # and of cos (r^(2k)/(2k)!) is below half an ulp of the result.
 _TERMS = {64: (9, 10), 32: (5, 6)}
+
+
+def computed_once(first: Array, second: Array) -> tuple[Array, Array]:
+    """Two arrays of one shape and dtype, each computed once by XLA.
+
+    XLA fuses arithmetic into every consumer that reads it, so a sine and
+    cosine read by many rows of a rotation would be evaluated again in
+    each. A barrier on the pair stacked as one array keeps it whole (a
+    barrier on the tuple does not: XLA's fusion goes through it)."""
+    stacked = jax.lax.optimization_barrier(jnp.stack([first, second]))
+    return stacked[0], stacked[1]
 
 
 def _series(r2: Array, first: int, count: int) -> Array:
@@ -62,7 +75,7 @@ def sincos(angle: Float[Array, "*batch"]) -> tuple[Float[Array, "*batch"], Float
     # a = q·π/2 + r: sin a is s, c, −s, −c and cos a is c, −s, −c, s for q = 0, 1, 2, 3.
     sine = jnp.where(q == 0, s, jnp.where(q == 1, c, jnp.where(q == 2, -s, -c)))
     cosine = jnp.where(q == 0, c, jnp.where(q == 1, -s, jnp.where(q == 2, -c, s)))
-    return sine, cosine
+    return computed_once(sine, cosine)
 
 
 @sincos.defjvp
