@@ -90,7 +90,7 @@ class Splitting(AbstractMethod):
     `jax.vmap` as with the trajectories as leading axes of the state (one
     run of all of them): either way the step packs the state with its
     components first, the layout XLA vectorises, and computes each
-    rotation's sine and cosine once (`groups.sincos`).
+    rotation's sine and cosine once (`groups.computed_once`).
     """
 
     scene: AbstractSplitScene

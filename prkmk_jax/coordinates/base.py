@@ -97,8 +97,8 @@ class AbstractCoordinates(eqx.Module):
         rotations of one coordinate plane (E² = −1 on it): the exact sub-flows
         of a splitting turn through these, each read by several rows of the
         state. Computed with arithmetic XLA vectorises (`groups.sincos`), and
-        once (`groups.computed_once`) where that takes more than a few
-        operations."""
+        returned through `groups.computed_once`, so that the rows reading
+        them do not each evaluate them again."""
 
     @abc.abstractmethod
     def inverse_differential(self, bundle: AbstractBundle, U: AlgebraPair, X: AlgebraPair, method_order: int) -> AlgebraPair:
