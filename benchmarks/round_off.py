@@ -3,15 +3,19 @@ number of steps, and what solving the implicit stages to round-off costs
 (`PRKMK(iterate_until="round-off")`, the default, against
 `iterate_until="tolerance"`, which stops at the default tolerance 1e-12).
 
-Growth: for each method and setting, a batch of random initial states
-(Haar-random attitudes, unit |Π| in a random direction), h = 0.1 (the
-heavy top 0.05), run for up to `--max-steps` steps (vmapped, each
-trajectory its own stage iterations). For each invariant, the largest error up to step N (relative
-for the energy and the Casimirs, the largest entry of QᵀQ − I for the
-attitude) is taken per trajectory, its median over the batch is recorded
-at N = 10³ … and the growth exponent is the least-squares slope of
-log(median) against log N over N ≥ 10⁴. A random walk of roundings gives
-0.5, a bias (a stage tolerance, a systematic rounding) 1.
+Growth: for each method and setting, a batch of `--batch` random initial
+states (Haar-random attitudes, unit |Π| in a random direction), h = 0.1
+(the heavy top 0.05), run for up to `--max-steps` steps (vmapped, each
+trajectory its own stage iterations). For each invariant, the largest
+error up to step N (relative for the energy and the Casimirs, the largest
+entry of QᵀQ − I for the attitude) is taken per trajectory, its median over
+the batch is recorded at N = 10³ … and the growth exponent is the
+least-squares slope of log(median) against log N over N ≥ 10⁴. A random
+walk of roundings gives 0.5, a bias (a stage tolerance, a systematic
+rounding) 1. Each exponent comes with the central 90% of its bootstrap
+distribution (the batch drawn again from its trajectories): with few
+trajectories the median, and so the fit, moves by several hundredths
+with the initial states drawn.
 
 * Free body (T*SO(3), exp and Cayley, body form): Störmer–Verlet keeps the
   energy and |Π| exactly in exact arithmetic, so their errors are rounding
@@ -36,7 +40,7 @@ implicit iterations a step, and their ratios.
 
     python benchmarks/round_off.py --out benchmarks/results
     python benchmarks/round_off.py --quick
-    python benchmarks/round_off.py --splittings-only   # their rows, into the results of an earlier run on this machine
+    python benchmarks/round_off.py --rows "SV Cayley;SV exp, float32"   # these rows again, into an earlier run's results
 """
 
 import json
@@ -97,8 +101,8 @@ def initial_states(batch, seed=0, dtype=jnp.float64):
 
 
 def growth(method, scene_name, num_steps, batch, every, dtype=jnp.float64):
-    """Median (over the batch) of the largest error up to each saved step,
-    per invariant, and the wall time of the run (compile included)."""
+    """The largest error up to each saved step, per invariant and trajectory
+    (`invariant_errors`), and the wall time of the run (compile included)."""
     scene, args = SCENES[scene_name]
     args = jax.tree.map(lambda a: jnp.asarray(a, dtype), args)
     y0 = initial_states(batch, dtype=dtype)
@@ -113,8 +117,8 @@ def growth(method, scene_name, num_steps, batch, every, dtype=jnp.float64):
 
 
 def invariant_errors(invariants):
-    """Median over the batch of the largest error up to each saved point,
-    per invariant (relative, but QᵀQ − I as it is)."""
+    """Per trajectory, the largest error up to each saved point, per
+    invariant, shape (batch, saves) (relative, but QᵀQ − I as it is)."""
     errors = {}
     for name, values in invariants.items():
         values = np.asarray(values, np.float64)
@@ -124,7 +128,7 @@ def invariant_errors(invariants):
             error = np.max(np.abs(values - values[:, :1]), axis=2) / np.max(np.abs(values[:, :1]), axis=2)
         else:
             error = np.abs(values / values[:, :1] - 1)
-        errors[name] = np.median(np.maximum.accumulate(error, axis=1), axis=0)
+        errors[name] = np.maximum.accumulate(error, axis=1)
     return errors
 
 
@@ -147,12 +151,32 @@ def stored(row, checkpoints, errors, count=80):
     return row
 
 
-def growth_row(row, errors, every):
-    """`stored` for errors saved every `every` steps from step 0 (left out),
-    and the line that reports it."""
-    saved = np.arange(len(next(iter(errors.values())))) * every
-    row = stored(row, saved[1:], {k: v[1:] for k, v in errors.items()})
-    return row, "  ".join(f"{k}: {row['errors'][k][-1]:.1e} ({row['exponent'][k]:.2f})" for k in errors)
+def growth_row(row, per_trajectory, every):
+    """`stored` for the batch's median of errors saved every `every` steps
+    from step 0 (left out), with each exponent's bootstrap interval, and
+    the line that reports it."""
+    per_trajectory = {k: v[:, 1:] for k, v in per_trajectory.items()}
+    saved = np.arange(1, next(iter(per_trajectory.values())).shape[1] + 1) * every
+    row = stored(row, saved, {k: np.median(v, axis=0) for k, v in per_trajectory.items()})
+    row["exponent_interval"] = {k: exponent_interval(saved, v) for k, v in per_trajectory.items()}
+    return row, "  ".join(
+        f"{k}: {row['errors'][k][-1]:.1e} ({row['exponent'][k]:.2f}, {lo:.2f}–{hi:.2f})" for k, (lo, hi) in row["exponent_interval"].items()
+    )
+
+
+def exponent_interval(steps, per_trajectory, resamples=2000, seed=0, smallest=10_000):
+    """The central 90% of the exponent (`exponent`) of the batch's median
+    over `resamples` batches drawn from the trajectories with replacement:
+    how far the fit moves with the initial states drawn (a bootstrap)."""
+    steps = np.asarray(steps, float)
+    picks = log_spaced_picks(steps, smallest, 13)
+    if len(picks) < 2:
+        return [float("nan"), float("nan")]
+    columns = np.maximum(per_trajectory[:, picks], 1e-300)
+    draws = np.random.default_rng(seed).integers(0, columns.shape[0], (resamples, columns.shape[0]))
+    medians = np.median(columns[draws], axis=1)  # (resamples, picks)
+    slopes = np.polyfit(np.log(steps[picks]), np.log(medians).T, 1)[0]
+    return [float(q) for q in np.quantile(slopes, [0.05, 0.95])]
 
 
 def exponent(steps, errors, smallest=10_000):
@@ -263,66 +287,69 @@ def main(argv=None):
     def extra(parser):
         parser.add_argument("--max-steps", type=float, default=1e6, help="steps of the growth runs (default 1e6)")
         parser.add_argument("--long-steps", type=float, default=1e7, help="steps of the longest run, SV exp at round-off (default 1e7)")
+        parser.add_argument("--batch", type=int, default=64, help="trajectories of each growth run (default 64)")
         parser.add_argument(
-            "--splittings-only",
-            action="store_true",
-            help="run the splittings' growth rows only and put them into the results file of an earlier run on this machine",
+            "--rows",
+            default="",
+            help="';'-separated growth rows to run again (e.g. 'SV Cayley;SV exp, float32;splitting (Strang)'), "
+            "the implicit ones with their stages solved to round-off, put into the results file of an earlier run on this machine",
         )
 
     args, out = C.cli(__doc__, argv, extra)
     quick = args.quick
     max_steps = 4_000 if quick else int(args.max_steps)
     long_steps = 4_000 if quick else int(args.long_steps)
-    batch = 2 if quick else 16
+    batch = 2 if quick else args.batch
     every = 1000
 
-    def splitting_rows():
-        rows = []
-        for name, (scene_name, method) in SPLITTINGS.items():
-            errors, seconds = growth(method, scene_name, max_steps, batch, every)
-            row = dict(method=name, scene=scene_name, setting="explicit", dtype="float64", batch=batch, steps=max_steps, seconds=seconds)
-            row, summary = growth_row(row, errors, every)
-            rows.append(row)
-            print(f"{name:28s} {'explicit':10s} {max_steps:9d} {seconds:7.1f}  {summary}", flush=True)
-        return rows
+    def growth_of(name, setting, dtype=jnp.float64, steps=max_steps):
+        """One growth row: `name` from `methods(setting)` or `SPLITTINGS`."""
+        scene_name, method = SPLITTINGS[name] if name in SPLITTINGS else methods(setting)[name]
+        errors, seconds = growth(method, scene_name, steps, batch, every, dtype)
+        dtype_name = jnp.dtype(dtype).name
+        row = dict(method=name, scene=scene_name, setting=setting, dtype=dtype_name, batch=batch, steps=steps, seconds=seconds)
+        row, summary = growth_row(row, errors, every)
+        label = name if dtype_name == "float64" else f"{name}, {dtype_name}"
+        print(f"{label:28s} {setting:10s} {steps:9d} {seconds:7.1f}  {summary}", flush=True)
+        return row
 
-    if args.splittings_only:
+    if args.rows:
         with open(out / "round_off.json") as f:
             earlier = json.load(f)
         if earlier["machine"] != C.machine():
             raise SystemExit(f"{out / 'round_off.json'} was measured on another machine or jax version; run the whole script instead.")
-        if {(r["batch"], r["steps"]) for r in earlier["growth"] if r["dtype"] == "float32"} != {(batch, max_steps)}:
-            raise SystemExit("--splittings-only takes the earlier run's batch and --max-steps.")
-        kept = [r for r in earlier["growth"] if r["method"] not in SPLITTINGS]
-        earlier["growth"] = kept + splitting_rows()
+        rows = earlier["growth"]
+        for label in args.rows.split(";"):
+            name, _, dtype_name = label.partition(", float")
+            if name not in SPLITTINGS and name not in methods("round-off"):
+                names = sorted([*methods("round-off"), *SPLITTINGS])
+                raise SystemExit(f"no growth row {label!r}: the rows are {names} (', float32' after SV exp).")
+            setting = "explicit" if name in SPLITTINGS else "round-off"
+            row = growth_of(name, setting, jnp.float32 if dtype_name else jnp.float64)
+            key = (name, setting, row["dtype"], row["steps"])
+            same = [k for k, r in enumerate(rows) if (r["method"], r["setting"], r["dtype"], r["steps"]) == key]
+            if same:
+                rows[same[0]] = row
+            else:  # after the rows of the same method and dtype
+                kin = [k for k, r in enumerate(rows) if (r["method"], r["dtype"]) == (name, row["dtype"])]
+                rows.insert(kin[-1] + 1 if kin else len(rows), row)
         with open(out / "round_off.json", "w") as f:
             json.dump(earlier, f, indent=1)
         return
     by_setting = {setting: methods(setting) for setting in SETTINGS}
     growth_rows = []
-    print(f"{'method':28s} {'setting':10s} {'steps':>9s} {'s':>7s}  invariant: median max error (exponent)")
+    print(f"{'method':28s} {'setting':10s} {'steps':>9s} {'s':>7s}  invariant: median max error (exponent, its 90% interval)")
     for name in by_setting["round-off"]:
         for setting in SETTINGS:
-            scene_name, method = by_setting[setting][name]
             steps = long_steps if (name == "SV exp" and setting == "round-off") else max_steps
-            errors, seconds = growth(method, scene_name, steps, batch, every)
-            row = dict(method=name, scene=scene_name, setting=setting, dtype="float64", batch=batch, steps=steps, seconds=seconds)
-            row, summary = growth_row(row, errors, every)
-            growth_rows.append(row)
-            print(f"{name:28s} {setting:10s} {steps:9d} {seconds:7.1f}  {summary}", flush=True)
+            growth_rows.append(growth_of(name, setting, steps=steps))
     # float32: SV exp, both settings (the step renormalises the state there).
-    for setting in SETTINGS:
-        scene_name, method = by_setting[setting]["SV exp"]
-        errors, seconds = growth(method, scene_name, max_steps, batch, every, jnp.float32)
-        row = dict(method="SV exp", scene=scene_name, setting=setting, dtype="float32", batch=batch, steps=max_steps, seconds=seconds)
-        row, summary = growth_row(row, errors, every)
-        growth_rows.append(row)
-        print(f"{'SV exp, float32':28s} {setting:10s} {max_steps:9d} {seconds:7.1f}  {summary}", flush=True)
-    growth_rows += splitting_rows()
+    growth_rows += [growth_of("SV exp", setting, jnp.float32) for setting in SETTINGS]
+    growth_rows += [growth_of(name, "explicit") for name in SPLITTINGS]
 
     probe = 500 if quick else 20_000
     dopri_errors, dopri_dt, dopri_cost = dopri8_at_equal_cost(by_setting["round-off"]["SV exp"][1], max_steps, batch, every, probe)
-    dopri = dict(method="Dopri8, equal cost", dt=dopri_dt, ns_per_traj_step=dopri_cost, steps_of_sv=max_steps)
+    dopri = dict(method="Dopri8, equal cost", batch=batch, dt=dopri_dt, ns_per_traj_step=dopri_cost, steps_of_sv=max_steps)
     dopri, summary = growth_row(dopri, dopri_errors, every)
     print(f"{'Dopri8, equal cost':28s} {'h=' + format(dopri_dt, '.3f'):10s} {max_steps:9d} {'':7s}  {summary}", flush=True)
     chart(growth_rows, dopri, out)

@@ -299,13 +299,18 @@ def round_off_table(_entries=None, root: Path | None = None) -> str:
     data = results_file("round_off.json", root)
 
     def growth(run):
-        return ", ".join(f"{name} {run['errors'][name][-1]:.1e} ({run['exponent'][name]:.2f})" for name in run["errors"])
+        def fit(name):
+            interval = run.get("exponent_interval", {}).get(name)
+            return f"{run['exponent'][name]:.2f}" + ("" if interval is None else f", {interval[0]:.2f}–{interval[1]:.2f}")
+
+        return ", ".join(f"{name} {run['errors'][name][-1]:.1e} ({fit(name)})" for name in run["errors"])
 
     rows = [[r["method"], r["scene"], r["setting"], r["dtype"], str(r["batch"]), f"{r['steps']:.0e}", growth(r)] for r in data["growth"]]
     d = data["dopri8"]
-    batch, horizon = data["growth"][0]["batch"], f"same time as SV's {d['steps_of_sv']:.0e}"
+    batch, horizon = d.get("batch", data["growth"][0]["batch"]), f"same time as SV's {d['steps_of_sv']:.0e}"
     rows.append([f"Dopri8 at SV's cost (h = {d['dt']:.3f})", "free body", "explicit", "float64", str(batch), horizon, growth(d)])
-    headers = ["method", "scene", "stages", "dtype", "trajectories", "steps", "largest error at the last step (growth exponent)"]
+    last = "largest error at the last step (growth exponent, its 90% interval)"
+    headers = ["method", "scene", "stages", "dtype", "trajectories", "steps", last]
     return _table(headers, rows)
 
 

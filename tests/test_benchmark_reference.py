@@ -61,3 +61,21 @@ def test_geodesic_distance():
     for angle in (1e-9, 1e-4, 0.5, 3.0):
         r = np.asarray(SO3.exp(jnp.array([angle, 0.0, 0.0])).matrix)
         assert abs(_common.geodesic_distance(q @ r, q) - angle) < 1e-12 * max(1, angle) + 1e-15
+
+
+def test_growth_exponent_interval_brackets_a_random_walk_and_a_drift():
+    """`round_off.py`'s bootstrap interval of the growth exponent: for running
+    maxima of random walks it holds 0.5 and not 1, for a steady drift with
+    small noise 1 and not 0.5."""
+    import round_off
+
+    rng = np.random.default_rng(7)
+    steps = np.arange(1, 1001) * 1000.0
+    walks = np.cumsum(rng.normal(size=(64, 1000)), axis=1)
+    drifts = steps * 1e-3 + np.cumsum(rng.normal(size=(64, 1000)), axis=1)
+    for paths, inside, outside in ((walks, 0.5, 1.0), (drifts, 1.0, 0.5)):
+        running_max = np.maximum.accumulate(np.abs(paths), axis=1)
+        low, high = round_off.exponent_interval(steps, running_max)
+        assert low < inside < high
+        assert not low < outside < high
+        assert high - low < 0.3
