@@ -292,7 +292,7 @@ def main(argv=None):
             "--rows",
             default="",
             help="';'-separated growth rows to run again (e.g. 'SV Cayley;SV exp, float32;splitting (Strang)'), "
-            "the implicit ones with their stages solved to round-off, put into the results file of an earlier run on this machine",
+            "the implicit ones in both settings, put into the results file of an earlier run on this machine",
         )
 
     args, out = C.cli(__doc__, argv, extra)
@@ -324,15 +324,15 @@ def main(argv=None):
             if name not in SPLITTINGS and name not in methods("round-off"):
                 names = sorted([*methods("round-off"), *SPLITTINGS])
                 raise SystemExit(f"no growth row {label!r}: the rows are {names} (', float32' after SV exp).")
-            setting = "explicit" if name in SPLITTINGS else "round-off"
-            row = growth_of(name, setting, jnp.float32 if dtype_name else jnp.float64)
-            key = (name, setting, row["dtype"], row["steps"])
-            same = [k for k, r in enumerate(rows) if (r["method"], r["setting"], r["dtype"], r["steps"]) == key]
-            if same:
-                rows[same[0]] = row
-            else:  # after the rows of the same method and dtype
-                kin = [k for k, r in enumerate(rows) if (r["method"], r["dtype"]) == (name, row["dtype"])]
-                rows.insert(kin[-1] + 1 if kin else len(rows), row)
+            for setting in ("explicit",) if name in SPLITTINGS else SETTINGS:
+                row = growth_of(name, setting, jnp.float32 if dtype_name else jnp.float64)
+                key = (name, setting, row["dtype"], row["steps"])
+                same = [k for k, r in enumerate(rows) if (r["method"], r["setting"], r["dtype"], r["steps"]) == key]
+                if same:
+                    rows[same[0]] = row
+                else:  # after the rows of the same method and dtype
+                    kin = [k for k, r in enumerate(rows) if (r["method"], r["dtype"]) == (name, row["dtype"])]
+                    rows.insert(kin[-1] + 1 if kin else len(rows), row)
         with open(out / "round_off.json", "w") as f:
             json.dump(earlier, f, indent=1)
         return

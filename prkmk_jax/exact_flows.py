@@ -24,6 +24,7 @@ turns; XLA fuses the rest of a step into few loops.
 """
 
 import abc
+import functools
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -34,6 +35,7 @@ from jaxtyping import Array, Float, PyTree
 
 from .bundles import BundleElement
 from .coordinates import AbstractCoordinates
+from .groups._util import drifted
 from .groups.so3 import SO3
 from .method import AbstractFieldOnBundle
 
@@ -271,16 +273,20 @@ def _rows_taken(z: Packed, sources: Array) -> Packed:
 def renormalized_rotations(z: Packed, first_rows: tuple[int, ...]) -> Packed:
     """z with each 3×3 matrix packed row-major from a row in `first_rows`
     taken one Björck step towards SO(3), Q ↦ Q + ½Q(I − QᵀQ)
-    (`groups._util.bjorck_step`), written on the rows: elementwise over the
-    batch, so it fuses with the step instead of running as batched 3×3
-    products. Relabelling the columns commutes with it."""
+    (`groups._util.bjorck_step`), where its max|QᵀQ − I| is past a few ulps
+    (`groups._util.drifted`, as `SO3.renormalized`), written on the rows:
+    elementwise over the batch, so it fuses with the step instead of running
+    as batched 3×3 products. Relabelling the columns commutes with it."""
     rows = list(z)
     for first in first_rows:
         q = [[rows[first + 3 * r + c] for c in range(3)] for r in range(3)]
         gram = [[sum(q[k][i] * q[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
+        defect = functools.reduce(jnp.maximum, [jnp.abs(gram[i][j] - (i == j)) for i in range(3) for j in range(3)])
+        correct = drifted(defect)
         for r in range(3):
             for c in range(3):
-                rows[first + 3 * r + c] = 1.5 * q[r][c] - 0.5 * sum(q[r][k] * gram[k][c] for k in range(3))
+                corrected = 1.5 * q[r][c] - 0.5 * sum(q[r][k] * gram[k][c] for k in range(3))
+                rows[first + 3 * r + c] = jnp.where(correct, corrected, q[r][c])
     return jnp.stack(rows)
 
 

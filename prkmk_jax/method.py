@@ -26,7 +26,8 @@ from .coordinates import AbstractCoordinates
 RESULTS = diffrax.RESULTS
 LOW_PRECISION_EPS = 1e-10
 """States of a dtype whose machine epsilon is above this (float32, bfloat16,
-float16) are renormalised after each step (`AbstractMethod.advance`). In
+float16) are renormalised after each step where they have drifted off the
+group by more than a few ulps (`AbstractMethod.advance`). In
 float64 the drift stays below 1e-7 over 10⁹ steps and the state is left
 exactly as the coordinate map gives it."""
 Time = float | Real[Array, ""]
@@ -200,9 +201,10 @@ class AbstractMethod(eqx.Module):
     def advance(self, U: Increment, y: BundleElement) -> BundleElement:
         """The step's new state: `apply_increment(U, y)`, and in low precision
         (machine epsilon above `LOW_PRECISION_EPS`) corrected back onto the
-        group (`AbstractBundle.renormalized`): there the rounding of f(U) and
-        of the product is systematic for steady motions and would pull the
-        state off the group a little every step (float32: ~5e-8 a step)."""
+        group where it has drifted off it by more than a few ulps
+        (`AbstractBundle.renormalized`): there the rounding of f(U) and of
+        the product is systematic for steady motions and would pull the state
+        off the group a little every step."""
         y_next = self.apply_increment(U, y)
         if jnp.finfo(jnp.result_type(*jax.tree.leaves(y_next))).eps > LOW_PRECISION_EPS:
             y_next = self.bundle.renormalized(y_next)

@@ -288,3 +288,22 @@ def test_apply_increment_equals_the_group_product(name, form, coordinates):
     increment = coords.map(bundle, (U[0], jnp.zeros_like(U[1])))
     expected = bundle.multiply(y, increment) if form == "body" else bundle.multiply(increment, y)
     _close(coords.apply(bundle, (U[0], None), y, form), expected, tol=1e-11)
+
+
+@pytest.mark.parametrize("group", [pk.SO3, pk.SOn])
+def test_renormalized_corrects_only_a_rotation_that_drifted(group):
+    """`renormalized` leaves a rotation within a few ulps of the group as it
+    is, bit for bit, and takes Björck's step on one that drifted further,
+    each matrix of a batch on its own."""
+    from prkmk_jax.groups._util import RENORMALIZATION_DEFECT, bjorck_step, orthogonality_defect
+
+    eps = float(jnp.finfo(jnp.float32).eps)
+    rotation = np.asarray(pk.SO3.exp(jnp.asarray([0.3, -1.2, 0.7])).matrix)
+    drifted = rotation * (1 + 10 * RENORMALIZATION_DEFECT * eps)
+    batch = jnp.asarray(np.stack([rotation, drifted]), jnp.float32)
+    before = np.asarray(orthogonality_defect(batch))
+    assert before[0] <= RENORMALIZATION_DEFECT * eps < before[1]
+    after = group(batch).renormalized().matrix
+    np.testing.assert_array_equal(after[0], batch[0])
+    np.testing.assert_array_equal(after[1], bjorck_step(batch[1]))
+    assert float(orthogonality_defect(after[1])) < before[1] / 10

@@ -49,7 +49,7 @@ def test_long_runs_end_in_states_the_library_accepts(rotation, momentum, coordin
     y_end = _long_run(coordinates, dtype)(y0, jnp.asarray(INERTIA, dtype))
     assert y_end.fiber.dtype == dtype
     jax.block_until_ready(COTANGENT.check(y_end))  # raises if the library refused it
-    # float32 states are renormalised every step: QᵀQ = I to a few ulps. In
+    # float32 states are renormalised once they drift: QᵀQ = I to a few ulps. In
     # float64 the drift is rounding, ~1e-16 a step at most.
     bound = 20 * float(jnp.finfo(dtype).eps) if dtype == jnp.float32 else 1e-10
     assert float(orthogonality_defect(y_end.base.matrix)) < min(bound, ORTHOGONALITY_TOLERANCE)

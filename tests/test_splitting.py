@@ -308,7 +308,7 @@ def test_reverse_step_refuses_low_precision():
 
 
 def test_float32():
-    """A float32 run stays on the group (renormalised each step, as PRKMK
+    """A float32 run stays on the group (renormalised where it drifts, as PRKMK
     does) and within float32 accuracy of the float64 run."""
     y0 = _state(0)
     y32 = pk.BundleElement(pk.SO3(y0.base.matrix.astype(jnp.float32)), y0.fiber.astype(jnp.float32))
@@ -322,8 +322,9 @@ def test_float32():
 
 def test_renormalized_rotations_is_a_bjorck_step_on_each_matrix():
     """The row-wise renormalisation against the matrix form (3×3 products),
-    on two perturbed rotations per trajectory; it commutes with relabelling
-    the columns, as the packed states of the splittings have them."""
+    on two perturbed rotations per trajectory, and rotations within a few
+    ulps of the group left as they are; it commutes with relabelling the
+    columns, as the packed states of the splittings have them."""
     from prkmk_jax.exact_flows import renormalized_rotations
     from prkmk_jax.groups._util import bjorck_step
 
@@ -335,6 +336,9 @@ def test_renormalized_rotations_is_a_bjorck_step_on_each_matrix():
     np.testing.assert_allclose(moved, expected, rtol=0, atol=1e-15)
     defect = lambda m: np.max(np.abs(np.swapaxes(m, -1, -2) @ m - np.eye(3)))  # noqa: E731
     assert defect(moved) < 1e-4 < 1e-3 < defect(matrices)
+    rotations = np.stack([[random_rotation(7 * b + k) for k in range(2)] for b in range(5)])
+    on_the_group = jnp.asarray(np.moveaxis(rotations.reshape(5, 18), -1, 0))
+    np.testing.assert_array_equal(renormalized_rotations(on_the_group, (0, 9)), on_the_group)  # within a few ulps: left as it is
     permuted = packed.reshape(2, 3, 3, 5)[:, :, [2, 0, 1]].reshape(18, 5)
     again = np.asarray(renormalized_rotations(permuted, (0, 9))).reshape(2, 3, 3, 5)[:, :, [1, 2, 0]].reshape(18, 5)
     np.testing.assert_allclose(again, np.asarray(renormalized_rotations(packed, (0, 9))), rtol=0, atol=1e-15)

@@ -70,10 +70,11 @@ class AbstractLieGroup(eqx.Module):
     def renormalized(self) -> Self:
         """One cheap correction toward the group that removes rounding drift to
         first order (for rotations Björck's step Q + ½Q(I − QᵀQ), which
-        squares the defect). The PRKMK step applies it to every new state in
-        low precision: in float32 the rounding of exp(u) and of the product
-        is systematic for steady rotations, and max|QᵀQ − I| would otherwise
-        grow by ~5e-8 a step (5e-3 after 10⁵ steps)."""
+        squares the defect, taken once max|QᵀQ − I| is past a few ulps:
+        `groups._util.bjorck_step_where_drifted`). The PRKMK step applies it
+        to every new state in low precision: in float32 the rounding of
+        exp(u) and of the product is systematic for steady rotations, and
+        the state would otherwise leave the group steadily."""
 
     @abc.abstractmethod
     def project(self) -> Self:

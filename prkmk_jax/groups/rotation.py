@@ -6,7 +6,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._util import bjorck_step, checked_rotation, nearest_rotation
+from ._util import bjorck_step_where_drifted, checked_rotation, nearest_rotation
 from .base import AbstractQuadraticGroup
 
 
@@ -39,4 +39,4 @@ class AbstractRotationGroup(AbstractQuadraticGroup):
         return self._with_matrix(nearest_rotation(self.matrix))
 
     def renormalized(self) -> Self:
-        return self._with_matrix(bjorck_step(self.matrix))
+        return self._with_matrix(bjorck_step_where_drifted(self.matrix))
