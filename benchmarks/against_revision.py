@@ -22,6 +22,7 @@ its stored steps or (`reversible_grad`) by `ReversibleGradient(None)`.
 
     python benchmarks/against_revision.py --rev a1a3087 --out benchmarks/results
     python benchmarks/against_revision.py --quick          # against HEAD
+    python benchmarks/against_revision.py --rev a1a3087 --float32 --name against_revision_float32
 """
 
 import importlib
@@ -143,6 +144,7 @@ def main(argv=None):
         parser.add_argument("--scene", default="", help="run only the cases of this scene ('free body' or 'heavy top')")
         parser.add_argument("--name", default="against_revision", help="stem of the results file")
         parser.add_argument("--splittings", action="store_true", help="the exact-flow splittings' cases instead of PRKMK's")
+        parser.add_argument("--float32", action="store_true", help="the float32 cases of both, alone (what renormalises the state)")
 
     args, out = C.cli(__doc__, argv, arguments)
     before, sha = import_revision(args.rev)
@@ -152,6 +154,11 @@ def main(argv=None):
             ("lobatto_iiia_iiib6", "cayley", "integrate", 8, jnp.float64, "heavy top"),
         ]
         rounds, work = 2, 80
+    elif args.float32:
+        cases = [("stormer_verlet", "exp", "integrate", b, jnp.float32, "free body") for b in (1, 1024, 16384)]
+        cases += [("lobatto_iiia_iiib4", "exp", "integrate", 16384, jnp.float32, "free body")]
+        cases += [("splitting", "exp", path, b, jnp.float32, "free body") for path, b in (("integrate", 1), ("in_state", 1024))]
+        rounds, work = args.rounds, 200_000
     elif args.splittings:
         cases = [
             (method, coords, path, batch, jnp.float64, "free body")

@@ -29,6 +29,7 @@ from collections.abc import Callable
 from typing import Any, ClassVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, PyTree
@@ -270,23 +271,38 @@ def _rows_taken(z: Packed, sources: Array) -> Packed:
     return jnp.take_along_axis(z, jnp.broadcast_to(sources, z.shape), axis=0, mode="clip")
 
 
+@functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
 def renormalized_rotations(z: Packed, first_rows: tuple[int, ...]) -> Packed:
     """z with each 3×3 matrix packed row-major from a row in `first_rows`
     taken one Björck step towards SO(3), Q ↦ Q + ½Q(I − QᵀQ)
     (`groups._util.bjorck_step`), where its max|QᵀQ − I| is past a few ulps
     (`groups._util.drifted`, as `SO3.renormalized`), written on the rows:
     elementwise over the batch, so it fuses with the step instead of running
-    as batched 3×3 products. Relabelling the columns commutes with it."""
+    as batched 3×3 products. Relabelling the columns commutes with it. Its
+    derivative is the Björck step's, the correction taken or not (as
+    `groups._util.bjorck_step_where_drifted`)."""
+    return _bjorck_rows(z, first_rows, only_where_drifted=True)
+
+
+@renormalized_rotations.defjvp
+def _renormalized_rotations_jvp(first_rows, primals, tangents):
+    (z,), (z_dot,) = primals, tangents
+    _, out_dot = jax.jvp(lambda z: _bjorck_rows(z, first_rows, only_where_drifted=False), (z,), (z_dot,))
+    return renormalized_rotations(z, first_rows), out_dot
+
+
+def _bjorck_rows(z: Packed, first_rows: tuple[int, ...], only_where_drifted: bool) -> Packed:
+    """The Björck step of `renormalized_rotations` on the rows, on every
+    matrix or (`only_where_drifted`) on those past a few ulps."""
     rows = list(z)
     for first in first_rows:
         q = [[rows[first + 3 * r + c] for c in range(3)] for r in range(3)]
         gram = [[sum(q[k][i] * q[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
         defect = functools.reduce(jnp.maximum, [jnp.abs(gram[i][j] - (i == j)) for i in range(3) for j in range(3)])
-        correct = drifted(defect)
         for r in range(3):
             for c in range(3):
                 corrected = 1.5 * q[r][c] - 0.5 * sum(q[r][k] * gram[k][c] for k in range(3))
-                rows[first + 3 * r + c] = jnp.where(correct, corrected, q[r][c])
+                rows[first + 3 * r + c] = jnp.where(drifted(defect), corrected, q[r][c]) if only_where_drifted else corrected
     return jnp.stack(rows)
 
 

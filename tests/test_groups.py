@@ -294,7 +294,7 @@ def test_apply_increment_equals_the_group_product(name, form, coordinates):
 def test_renormalized_corrects_only_a_rotation_that_drifted(group):
     """`renormalized` leaves a rotation within a few ulps of the group as it
     is, bit for bit, and takes Björck's step on one that drifted further,
-    each matrix of a batch on its own."""
+    each matrix of a batch on its own; its derivative is the Björck step's."""
     from prkmk_jax.groups._util import RENORMALIZATION_DEFECT, bjorck_step, orthogonality_defect
 
     eps = float(jnp.finfo(jnp.float32).eps)
@@ -307,3 +307,9 @@ def test_renormalized_corrects_only_a_rotation_that_drifted(group):
     np.testing.assert_array_equal(after[0], batch[0])
     np.testing.assert_array_equal(after[1], bjorck_step(batch[1]))
     assert float(orthogonality_defect(after[1])) < before[1] / 10
+    # The derivative is the Björck step's either way (that of the projection
+    # onto the group), so a gradient does not depend on where rounding crossed.
+    direction = jnp.asarray(np.random.default_rng(0).normal(size=(2, 3, 3)), jnp.float32)
+    _, derivative = jax.jvp(lambda m: group(m).renormalized().matrix, (batch,), (direction,))
+    _, expected = jax.jvp(bjorck_step, (batch,), (direction,))
+    np.testing.assert_allclose(derivative, expected, rtol=0, atol=1e-6)

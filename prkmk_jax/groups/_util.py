@@ -3,6 +3,7 @@
 from collections.abc import Callable, Sequence
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
@@ -82,6 +83,7 @@ def drifted(defect: Array) -> Array:
     return defect > RENORMALIZATION_DEFECT * float(jnp.finfo(defect.dtype).eps)
 
 
+@jax.custom_jvp
 def bjorck_step_where_drifted(matrix: Array) -> Array:
     """`bjorck_step` on each matrix whose orthogonality defect has `drifted`,
     the others as they are. A correction at every step acts on the last
@@ -89,11 +91,23 @@ def bjorck_step_where_drifted(matrix: Array) -> Array:
     same step after step: in float32 the corrections then moved the spatial
     momentum of a free body steadily. Past a few ulps the defect is rounding
     accumulated over many steps, and its correction is not biased
-    (`benchmarks/round_off.py` fits how the errors grow)."""
+    (`benchmarks/round_off.py` fits how the errors grow).
+
+    Its derivative is `bjorck_step`'s wherever the correction is taken or
+    not: that of the projection onto the group, the identity along the
+    group, so a gradient does not depend on the steps at which rounding
+    crossed the threshold (a run rebuilt backwards crosses it elsewhere)."""
     n = matrix.shape[-1]
     gram = jnp.swapaxes(matrix, -1, -2) @ matrix
     defect = jnp.max(jnp.abs(gram - jnp.eye(n, dtype=matrix.dtype)), axis=(-2, -1))
     return jnp.where(drifted(defect)[..., None, None], 1.5 * matrix - 0.5 * (matrix @ gram), matrix)
+
+
+@bjorck_step_where_drifted.defjvp
+def _bjorck_step_where_drifted_jvp(primals, tangents):
+    (matrix,), (matrix_dot,) = primals, tangents
+    _, out_dot = jax.jvp(bjorck_step, (matrix,), (matrix_dot,))
+    return bjorck_step_where_drifted(matrix), out_dot
 
 
 def nearest_rotation(matrix: Array) -> Array:
