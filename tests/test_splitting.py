@@ -256,7 +256,9 @@ REVERSE_VARIANTS = {  # name: (coefficients, coordinates)
 @pytest.mark.parametrize(
     "name, variant, batch",
     [(name, "Strang", batch) for name in CASES for batch in (1, 3)]
-    + [(name, variant, 3) for name in ("free body", "heavy top", "symmetric body") for variant in ("Cayley", "Kahan–Li 6")],
+    + [(name, "Cayley", 3) for name in ("free body", "heavy top", "symmetric body")]
+    # A composed step compiles slowly: one scene (the composition's code is the same for all).
+    + [("free body", "Kahan–Li 6", 3)],
 )
 def test_reverse_step_undoes_the_step_and_gives_its_vjp(name, variant, batch):
     """`Splitting.reverse_step` from a step's end: the step's start (to
