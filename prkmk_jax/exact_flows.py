@@ -299,10 +299,11 @@ def _bjorck_rows(z: Packed, first_rows: tuple[int, ...], only_where_drifted: boo
         q = [[rows[first + 3 * r + c] for c in range(3)] for r in range(3)]
         gram = [[sum(q[k][i] * q[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
         defect = functools.reduce(jnp.maximum, [jnp.abs(gram[i][j] - (i == j)) for i in range(3) for j in range(3)])
+        correct = drifted(defect)
         for r in range(3):
             for c in range(3):
                 corrected = 1.5 * q[r][c] - 0.5 * sum(q[r][k] * gram[k][c] for k in range(3))
-                rows[first + 3 * r + c] = jnp.where(drifted(defect), corrected, q[r][c]) if only_where_drifted else corrected
+                rows[first + 3 * r + c] = jnp.where(correct, corrected, q[r][c]) if only_where_drifted else corrected
     return jnp.stack(rows)
 
 

@@ -97,10 +97,7 @@ def bjorck_step_where_drifted(matrix: Array) -> Array:
     not: that of the projection onto the group, the identity along the
     group, so a gradient does not depend on the steps at which rounding
     crossed the threshold (a run rebuilt backwards crosses it elsewhere)."""
-    n = matrix.shape[-1]
-    gram = jnp.swapaxes(matrix, -1, -2) @ matrix
-    defect = jnp.max(jnp.abs(gram - jnp.eye(n, dtype=matrix.dtype)), axis=(-2, -1))
-    return jnp.where(drifted(defect)[..., None, None], 1.5 * matrix - 0.5 * (matrix @ gram), matrix)
+    return jnp.where(drifted(orthogonality_defect(matrix))[..., None, None], bjorck_step(matrix), matrix)
 
 
 @bjorck_step_where_drifted.defjvp
