@@ -41,6 +41,7 @@ implicit iterations a step, and their ratios.
     python benchmarks/round_off.py --out benchmarks/results
     python benchmarks/round_off.py --quick
     python benchmarks/round_off.py --rows "SV Cayley;SV exp, float32"   # these rows again, into an earlier run's results
+    python benchmarks/round_off.py --rows "SV exp, long"                # SV exp at round-off over --long-steps
 """
 
 import json
@@ -267,9 +268,13 @@ def chart(rows, dopri, out):
     fig, ax = plt.subplots(figsize=(6.4, 4.4))
     h = STEP["free body"]
     styles = {"round-off": "-", "tolerance": "--"}
+    charted = {}  # one line per method and setting: its longest run, then its largest batch
     for row in rows:
-        if row["scene"] != "free body" or row["dtype"] != "float64" or row["method"] not in ("SV exp", "SV∘Kahan–Li 6"):
-            continue
+        if row["scene"] == "free body" and row["dtype"] == "float64" and row["method"] in ("SV exp", "SV∘Kahan–Li 6"):
+            key = (row["method"], row["setting"])
+            if key not in charted or (row["steps"], row["batch"]) > (charted[key]["steps"], charted[key]["batch"]):
+                charted[key] = row
+    for row in charted.values():
         ts = np.asarray(row["checkpoints"]) * h
         ax.loglog(ts, row["errors"]["energy"], styles[row["setting"]], label=f"{row['method']}, {row['setting']}")
     ts = np.asarray(dopri["checkpoints"]) * h
@@ -292,7 +297,8 @@ def main(argv=None):
             "--rows",
             default="",
             help="';'-separated growth rows to run again (e.g. 'SV Cayley;SV exp, float32;splitting (Strang)'), "
-            "the implicit ones in both settings, put into the results file of an earlier run on this machine",
+            "the implicit ones in both settings ('SV exp, long': its round-off run over --long-steps), "
+            "put into the results file of an earlier run on this machine; the chart is drawn again",
         )
 
     args, out = C.cli(__doc__, argv, extra)
@@ -320,12 +326,14 @@ def main(argv=None):
             raise SystemExit(f"{out / 'round_off.json'} was measured on another machine or jax version; run the whole script instead.")
         rows = earlier["growth"]
         for label in args.rows.split(";"):
-            name, _, dtype_name = label.partition(", float")
+            long = label == "SV exp, long"
+            name, _, dtype_name = ("SV exp", "", "") if long else label.partition(", float")
             if name not in SPLITTINGS and name not in methods("round-off"):
                 names = sorted([*methods("round-off"), *SPLITTINGS])
-                raise SystemExit(f"no growth row {label!r}: the rows are {names} (', float32' after SV exp).")
-            for setting in ("explicit",) if name in SPLITTINGS else SETTINGS:
-                row = growth_of(name, setting, jnp.float32 if dtype_name else jnp.float64)
+                raise SystemExit(f"no growth row {label!r}: the rows are {names} (', float32' or ', long' after SV exp).")
+            settings = ("explicit",) if name in SPLITTINGS else ("round-off",) if long else SETTINGS
+            for setting in settings:
+                row = growth_of(name, setting, jnp.float32 if dtype_name else jnp.float64, steps=long_steps if long else max_steps)
                 key = (name, setting, row["dtype"], row["steps"])
                 same = [k for k, r in enumerate(rows) if (r["method"], r["setting"], r["dtype"], r["steps"]) == key]
                 if same:
@@ -335,6 +343,7 @@ def main(argv=None):
                     rows.insert(kin[-1] + 1 if kin else len(rows), row)
         with open(out / "round_off.json", "w") as f:
             json.dump(earlier, f, indent=1)
+        chart(rows, earlier["dopri8"], out)
         return
     by_setting = {setting: methods(setting) for setting in SETTINGS}
     growth_rows = []
@@ -359,7 +368,8 @@ def main(argv=None):
     cost_rows = []
     rounds = 2 if quick else 9
     print(f"\n{'method':28s} {'batch':>5s} {'round-off ns':>12s} {'tolerance ns':>12s} {'ratio':>6s} {'it r-o':>7s} {'it tol':>7s}")
-    for name in by_setting["round-off"]:
+    # --quick: the cost of the first method only, which runs the same code.
+    for name in list(by_setting["round-off"])[:1] if quick else by_setting["round-off"]:
         for cost_batch in (4,) if quick else (1, 64):
             scene_name = by_setting["round-off"][name][0]
             steps = 20 if quick else max(200, 20_000 // cost_batch)

@@ -81,9 +81,12 @@ class AbstractScene(AbstractFieldOnBundle):
         args_on_cpu = jax.device_put(args, cpu)
 
         def rhs(t, z):
-            return np.asarray(field(t, jax.device_put(z, cpu), args_on_cpu))
+            return np.asarray(field(t, z, args_on_cpu))
 
-        solution = solve_ivp(rhs, (t0, times[-1]), z0, method="DOP853", rtol=rtol, atol=atol, t_eval=times)
+        # SciPy's arrays go to the CPU as the default device: a `device_put`
+        # of each state would cost several times the field's evaluation.
+        with jax.default_device(cpu):
+            solution = solve_ivp(rhs, (t0, times[-1]), z0, method="DOP853", rtol=rtol, atol=atol, t_eval=times)
         if not solution.success:
             raise RuntimeError(f"the reference solve (DOP853) failed: {solution.message}")
         return solution.y.T
