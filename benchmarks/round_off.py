@@ -325,6 +325,8 @@ def main(argv=None):
         if earlier["machine"] != C.machine():
             raise SystemExit(f"{out / 'round_off.json'} was measured on another machine or jax version; run the whole script instead.")
         rows = earlier["growth"]
+        # A record written before the Dopri8 row carried its batch: the full run's, its first row's.
+        earlier["dopri8"].setdefault("batch", rows[0]["batch"])
         for label in args.rows.split(";"):
             long = label == "SV exp, long"
             name, _, dtype_name = ("SV exp", "", "") if long else label.partition(", float")

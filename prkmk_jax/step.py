@@ -68,7 +68,10 @@ class PRKMK(AbstractMethod):
       exactly as rounding allows, so a symmetric or symplectic method is
       symmetric or symplectic to round-off, and its energy error grows
       about as the random walk of the rounding errors does (√N over N
-      steps) instead of steadily with a bias set by the tolerance.
+      steps) instead of steadily with a bias set by the tolerance. A far
+      smaller bias of the step's own rounding remains: it overtakes the
+      random walk over runs of millions of steps (the free body's energy
+      under Störmer–Verlet; `benchmarks/round_off.py` measures it).
       `"tolerance"`: it stops at `rtol`/`atol`, a few iterations a step
       sooner. `benchmarks/round_off.py` measures both: the growth exponent
       and the cost.
