@@ -68,13 +68,10 @@ class PRKMK(AbstractMethod):
       exactly as rounding allows, so a symmetric or symplectic method is
       symmetric or symplectic to round-off, and its energy error grows
       about as the random walk of the rounding errors does (√N over N
-      steps) instead of steadily with a bias set by the tolerance. The
-      step's increment h·Σ bᵢKᵢ is then summed exactly and rounded once
-      (`correctly_rounded_combination`): rounded as the stages round it,
-      its error would lean the same way at every step (the stages are a
-      fixed point of that rounding), a bias that overtakes the random walk
-      over millions of steps. A smaller bias may remain from the rounding
-      of the coordinate map itself; `benchmarks/round_off.py` measures it.
+      steps) instead of steadily with a bias set by the tolerance. A far
+      smaller bias of the step's own rounding remains: it overtakes the
+      random walk over runs of millions of steps (the free body's energy
+      under Störmer–Verlet; `benchmarks/round_off.py` measures it).
       `"tolerance"`: it stops at `rtol`/`atol`, a few iterations a step
       sooner. `benchmarks/round_off.py` measures both: the growth exponent
       and the cost.
@@ -293,12 +290,8 @@ class PRKMK(AbstractMethod):
         a slope None is one the plan never computed, identically zero (L when
         η ≡ 0), and is left out of the sums."""
         tab = self.tableau
-        # Correctly rounded, not by the formula of the stages: the implicit
-        # stages are a fixed point of that formula's rounding, so its error
-        # in h·Σ bᵢKᵢ leans the same way every step, a bias in the energy
-        # that overtakes the rounding's random walk over long runs.
-        u_next = correctly_rounded_combination(dt, tab.b_first, first, zeros[0])
-        v_next = correctly_rounded_combination(dt, tab.b_second, second, zeros[1])
+        u_next = static_combination(dt, tab.b_first, first, zeros[0])
+        v_next = static_combination(dt, tab.b_second, second, zeros[1])
         u_next = zeros[0] if u_next is None else u_next
         y_next = self.advance((u_next, v_next), y)
         increment = (u_next, zeros[1] if v_next is None else v_next)
@@ -412,50 +405,6 @@ def static_combination(dt, coefficients, slopes, zero):
         term = slope if c == 1 else jnp.asarray(c, zero.dtype) * slope
         acc = term if acc is None else acc + term
     return dt * acc
-
-
-def correctly_rounded_combination(dt, coefficients, slopes, zero):
-    """`static_combination`'s dt·Σ_j coefficients[j]·slopes[j], but with each
-    product and sum carried exactly (Dekker's product, Knuth's sum: the
-    error-free transformations of Ogita, Rump & Oishi, SIAM J. Sci. Comput.
-    26, 2005) and rounded once at the end: the exact value to within an ulp
-    or so, whatever the coefficients (which need not be representable: their
-    float is used). None when no term is left."""
-    terms = [(c, slope) for c, slope in zip(coefficients, slopes) if c != 0 and slope is not None]
-    if not terms:
-        return None
-    high, low = _two_product(jnp.asarray(terms[0][0], zero.dtype), terms[0][1])
-    for c, slope in terms[1:]:
-        product, error = _two_product(jnp.asarray(c, zero.dtype), slope)
-        high, sum_error = _two_sum(high, product)
-        low = low + error + sum_error
-    dt = jnp.asarray(dt, zero.dtype)
-    product, error = _two_product(dt, high)
-    return product + (error + dt * low)
-
-
-def _two_sum(a, b):
-    """(a + b rounded, its rounding error): a + b exactly as their sum."""
-    s = a + b
-    b_virtual = s - a
-    return s, (a - (s - b_virtual)) + (b - b_virtual)
-
-
-def _two_product(a, b):
-    """(a·b rounded, its rounding error): a·b exactly as their sum (each
-    factor split into halves whose products are exact)."""
-    p = a * b
-    a_high, a_low = _split(a)
-    b_high, b_low = _split(b)
-    return p, ((a_high * b_high - p) + a_high * b_low + a_low * b_high) + a_low * b_low
-
-
-def _split(a):
-    """a = high + low, each with half of the mantissa's bits."""
-    factor = 2.0 ** ((jnp.finfo(a.dtype).nmant + 2) // 2) + 1.0
-    scaled = factor * a
-    high = scaled - (scaled - a)
-    return high, a - high
 
 
 def _fixed_point_iteration(fn, guess, rtol, atol, max_iterations, dtype, until_round_off=True):

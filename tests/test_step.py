@@ -247,36 +247,3 @@ def test_carried_of_the_wrong_structure_is_refused():
         method.step(field, 0.0, y0, H, args, ((zero,), ((zero, zero),) * 3))
     with pytest.raises(ValueError, match="carried must be"):
         method.step(field, 0.0, y0, H, args, ((zero, zero),))
-
-
-@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32], ids=["float64", "float32"])
-def test_the_step_increment_is_the_exact_combination_rounded_once(dtype):
-    """`correctly_rounded_combination` against the exact rational value of
-    dt·Σ cⱼ·Kⱼ (Python fractions of the same floats): within one ulp of it,
-    and nearer to it on average than `static_combination`'s rounding, which
-    rounds every product and sum. The coefficients include ones that no
-    float holds exactly (1/3, 1/6)."""
-    from fractions import Fraction
-
-    from prkmk_jax.step import correctly_rounded_combination, static_combination
-
-    rng = np.random.default_rng(11)
-    coefficients = (1 / 6, 0.0, 2 / 3, 1 / 6, 1 / 3)
-    slopes = [jnp.asarray(rng.normal(size=2000) * 10.0 ** rng.integers(-3, 3, size=2000), dtype) for _ in coefficients]
-    slopes[1] = None  # a slope the plan never computed
-    dt = jnp.asarray(0.1, dtype)
-    zero = jnp.zeros((), dtype)
-    accurate = np.asarray(correctly_rounded_combination(dt, coefficients, slopes, zero))
-    plain = np.asarray(static_combination(dt, coefficients, slopes, zero))
-    c = [Fraction(float(np.asarray(k, dtype))) for k in coefficients]
-    exact = np.array(
-        [
-            float(Fraction(float(dt)) * sum(ck * Fraction(float(s[i])) for ck, s in zip(c, slopes) if s is not None and ck != 0))
-            for i in range(2000)
-        ]
-    )
-    ulp = np.spacing(np.abs(exact).astype(dtype)).astype(np.float64)
-    accurate_error = np.abs(accurate - exact) / ulp
-    assert accurate_error.max() <= 1.0
-    assert accurate_error.mean() < 0.5 * (np.abs(plain - exact) / ulp).mean()
-    assert correctly_rounded_combination(dt, (0.0, 1.0), [slopes[0], None], zero) is None
