@@ -168,11 +168,11 @@ def main(argv=None):
     left_out = ("splitting, stored steps", "diffeqsolve, ReversibleAdjoint")
     cases = [c for c in cases if not (c[2] >= 1_000_000 and c[0] in left_out)]
     cases.append((FIT, fit[0], fit[1], 0))
-    for k, (path, b, steps, rounds) in enumerate(cases):
+    for case_number, (path, b, steps, rounds) in enumerate(cases):
         start = time.perf_counter()
         # --quick checks that every case runs: the first in a child as in a
         # full run, the others in this process (their RSS is then not theirs alone).
-        row = measure(path, b, steps, rounds) if args.quick and k > 0 else _in_child(path, b, steps, rounds)
+        row = measure(path, b, steps, rounds) if args.quick and case_number > 0 else _in_child(path, b, steps, rounds)
         rows.append(row)
         temp = "–" if row["temp_bytes"] is None else f"{row['temp_bytes'] / 1e6:.2f}"
         rss = "/".join(f"{row['peak_rss_mb'][k]:.0f}" for k in ("compiled", "forward", "value_and_grad"))
