@@ -42,6 +42,7 @@ implicit iterations a step, and their ratios.
     python benchmarks/round_off.py --quick
     python benchmarks/round_off.py --rows "SV Cayley;SV exp, float32"   # these rows again, into an earlier run's results
     python benchmarks/round_off.py --rows "SV exp, long"                # SV exp at round-off over --long-steps
+    python benchmarks/round_off.py --rows "Dopri8;cost"                 # the equal-cost row and the cost table
 """
 
 import json
@@ -297,8 +298,9 @@ def main(argv=None):
             "--rows",
             default="",
             help="';'-separated growth rows to run again (e.g. 'SV Cayley;SV exp, float32;splitting (Strang)'), "
-            "the implicit ones in both settings ('SV exp, long': its round-off run over --long-steps), "
-            "put into the results file of an earlier run on this machine; the chart is drawn again",
+            "the implicit ones in both settings ('SV exp, long': its round-off run over --long-steps; 'Dopri8': "
+            "the equal-cost row; 'cost': the cost table), put into the results file of an earlier run on this "
+            "machine; the chart is drawn again",
         )
 
     args, out = C.cli(__doc__, argv, extra)
@@ -319,6 +321,38 @@ def main(argv=None):
         print(f"{label:28s} {setting:10s} {steps:9d} {seconds:7.1f}  {summary}", flush=True)
         return row
 
+    def dopri8_row(sv_steps):
+        """The row of Dopri8 at SV's cost over SV's `sv_steps` steps."""
+        probe = 500 if quick else 20_000
+        sv = methods("round-off")["SV exp"][1]
+        dopri_errors, dopri_dt, dopri_cost = dopri8_at_equal_cost(sv, sv_steps, batch, every, probe)
+        dopri = dict(method="Dopri8, equal cost", batch=batch, dt=dopri_dt, ns_per_traj_step=dopri_cost, steps_of_sv=sv_steps)
+        dopri, summary = growth_row(dopri, dopri_errors, every)
+        print(f"{'Dopri8, equal cost':28s} {'h=' + format(dopri_dt, '.3f'):10s} {sv_steps:9d} {'':7s}  {summary}", flush=True)
+        return dopri
+
+    def cost_rows():
+        """The cost of each implicit method in both settings, interleaved."""
+        by_setting = {setting: methods(setting) for setting in SETTINGS}
+        rows = []
+        rounds = 2 if quick else 9
+        print(f"\n{'method':28s} {'batch':>5s} {'round-off ns':>12s} {'tolerance ns':>12s} {'ratio':>6s} {'it r-o':>7s} {'it tol':>7s}")
+        # --quick: the cost of the first method only, which runs the same code.
+        for name in list(by_setting["round-off"])[:1] if quick else by_setting["round-off"]:
+            for cost_batch in (4,) if quick else (1, 64):
+                scene_name = by_setting["round-off"][name][0]
+                steps = 20 if quick else max(200, 20_000 // cost_batch)
+                row = cost(scene_name, cost_batch, steps, rounds, {s: by_setting[s][name][1] for s in SETTINGS})
+                row.update(method=name, scene=scene_name, batch=cost_batch, steps=steps)
+                rows.append(row)
+                ns, it = row["ns_per_traj_step"], row["iterations_per_step"]
+                print(
+                    f"{name:28s} {cost_batch:5d} {ns['round-off']:12.0f} {ns['tolerance']:12.0f} {row['round_off_over_tolerance']:6.2f} "
+                    f"{it['round-off']:7.1f} {it['tolerance']:7.1f}",
+                    flush=True,
+                )
+        return rows
+
     if args.rows:
         with open(out / "round_off.json") as f:
             earlier = json.load(f)
@@ -328,11 +362,19 @@ def main(argv=None):
         # A record written before the Dopri8 row carried its batch: the full run's, its first row's.
         earlier["dopri8"].setdefault("batch", rows[0]["batch"])
         for label in args.rows.split(";"):
+            if label == "Dopri8":
+                earlier["dopri8"] = dopri8_row(max_steps)
+                continue
+            if label == "cost":
+                earlier["cost"] = cost_rows()
+                continue
             long = label == "SV exp, long"
             name, _, dtype_name = ("SV exp", "", "") if long else label.partition(", float")
             if name not in SPLITTINGS and name not in methods("round-off"):
                 names = sorted([*methods("round-off"), *SPLITTINGS])
-                raise SystemExit(f"no growth row {label!r}: the rows are {names} (', float32' or ', long' after SV exp).")
+                raise SystemExit(
+                    f"no growth row {label!r}: the rows are {names} (', float32' or ', long' after SV exp), 'Dopri8' and 'cost'."
+                )
             settings = ("explicit",) if name in SPLITTINGS else ("round-off",) if long else SETTINGS
             for setting in settings:
                 row = growth_of(name, setting, jnp.float32 if dtype_name else jnp.float64, steps=long_steps if long else max_steps)
@@ -360,32 +402,10 @@ def main(argv=None):
     growth_rows += [growth_of("SV exp", setting, jnp.float32) for setting in growth_settings]
     growth_rows += [growth_of(name, "explicit") for name in SPLITTINGS]
 
-    probe = 500 if quick else 20_000
-    dopri_errors, dopri_dt, dopri_cost = dopri8_at_equal_cost(by_setting["round-off"]["SV exp"][1], max_steps, batch, every, probe)
-    dopri = dict(method="Dopri8, equal cost", batch=batch, dt=dopri_dt, ns_per_traj_step=dopri_cost, steps_of_sv=max_steps)
-    dopri, summary = growth_row(dopri, dopri_errors, every)
-    print(f"{'Dopri8, equal cost':28s} {'h=' + format(dopri_dt, '.3f'):10s} {max_steps:9d} {'':7s}  {summary}", flush=True)
+    dopri = dopri8_row(max_steps)
     chart(growth_rows, dopri, out)
-
-    cost_rows = []
-    rounds = 2 if quick else 9
-    print(f"\n{'method':28s} {'batch':>5s} {'round-off ns':>12s} {'tolerance ns':>12s} {'ratio':>6s} {'it r-o':>7s} {'it tol':>7s}")
-    # --quick: the cost of the first method only, which runs the same code.
-    for name in list(by_setting["round-off"])[:1] if quick else by_setting["round-off"]:
-        for cost_batch in (4,) if quick else (1, 64):
-            scene_name = by_setting["round-off"][name][0]
-            steps = 20 if quick else max(200, 20_000 // cost_batch)
-            row = cost(scene_name, cost_batch, steps, rounds, {s: by_setting[s][name][1] for s in SETTINGS})
-            row.update(method=name, scene=scene_name, batch=cost_batch, steps=steps)
-            cost_rows.append(row)
-            ns, it = row["ns_per_traj_step"], row["iterations_per_step"]
-            print(
-                f"{name:28s} {cost_batch:5d} {ns['round-off']:12.0f} {ns['tolerance']:12.0f} {row['round_off_over_tolerance']:6.2f} "
-                f"{it['round-off']:7.1f} {it['tolerance']:7.1f}",
-                flush=True,
-            )
     with open(out / "round_off.json", "w") as f:
-        json.dump(dict(machine=C.machine(), h=STEP, growth=growth_rows, dopri8=dopri, cost=cost_rows), f, indent=1)
+        json.dump(dict(machine=C.machine(), h=STEP, growth=growth_rows, dopri8=dopri, cost=cost_rows()), f, indent=1)
 
 
 if __name__ == "__main__":

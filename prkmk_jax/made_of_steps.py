@@ -23,6 +23,7 @@ from jaxtyping import Array, PyTree
 
 from .bundles import BundleElement
 from .compositions import CompositionCoefficients
+from .exact_sums import rounded_once_combination
 from .method import RESULTS, AbstractMethod, Step, VectorField, first_failure, flag_nonfinite, largest_entry_difference
 from .splitting import Splitting
 from .step import PRKMK, static_combination
@@ -117,6 +118,11 @@ class Adjoint(AbstractMadeOfSteps):
 
         stages, result, iterations = method.solve_implicit(all_slopes, guesses, dtype)
         u_next = increment(stages)
+        if method.iterate_until == "round-off":
+            # As PRKMK's step: u rounded once from the solved slopes, not by
+            # the formula of which they are a fixed point (`exact_sums`).
+            u_rounded_once = rounded_once_combination(dt, tab.b_first, [k_i for k_i, _ in stages], zeros[0])
+            u_next = (zeros[0] if u_rounded_once is None else u_rounded_once, u_next[1])
         y_next = method.advance(u_next, y)
         return Step(y_next, u_next, flag_nonfinite(result, y_next), iterations, (field_now, stages))
 

@@ -1,0 +1,153 @@
+"""`exact_sums.rounded_once_combination` against the exact rational value of
+dt·Σⱼ cⱼxⱼ (Python fractions), alone and fused into several consumers, in
+this process and under XLA's default code generator (where LLVM may
+contract a·b + c into a fused multiply-add); and the PRKMK step's increment
+against the exact value from its own stage slopes."""
+
+import os
+import subprocess
+import sys
+from fractions import Fraction
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import prkmk_jax as pk
+from helpers import INERTIA, random_rotation, rigid_body_field
+from prkmk_jax.exact_sums import rounded_once_combination
+
+TESTS = Path(__file__).resolve().parent
+WEIGHTS = {"Störmer–Verlet": (0.5, 0.5), "Lobatto 3": (1 / 6, 2 / 3, 1 / 6), "Lobatto 4": (1 / 12, 5 / 12, 5 / 12, 1 / 12)}
+
+
+def rounding_errors(dt, coefficients, slopes, computed) -> tuple[np.ndarray, np.ndarray]:
+    """For each entry: |computed − exact| in ulps of the exact value, and
+    the same error over Σⱼ|dt·cⱼ·xⱼ|·eps^1.5 (the bound of the rounding
+    left in the sum's tail under cancellation), with the coefficients taken
+    at their value in the computed dtype."""
+    dtype = computed.dtype
+    eps = Fraction(float(np.finfo(dtype).eps))
+    step = Fraction(float(np.asarray(dt, dtype)))
+    weights = [step * Fraction(float(np.asarray(c, dtype))) for c in coefficients]
+    in_ulps, in_tail_units = [], []
+    for k in range(computed.size):
+        terms = [w * Fraction(float(x[k])) for w, x in zip(weights, slopes)]
+        exact = sum(terms)
+        error = abs(Fraction(float(computed[k])) - exact)
+        # The spacing of floats at the exact value (the smaller one at a power of two).
+        ulp = Fraction(float(np.spacing(np.asarray(abs(float(exact)) * (1 - float(eps)), dtype))))
+        in_ulps.append(float(error / ulp))
+        size = sum(abs(t) for t in terms)
+        in_tail_units.append(float(error / (size * eps * Fraction(float(np.sqrt(float(eps)))))) if size else 0.0)
+    return np.array(in_ulps), np.array(in_tail_units)
+
+
+def random_slopes(count, size, dtype, seed):
+    """Slopes of either sign over six decades: sums that cancel included."""
+    rng = np.random.default_rng(seed)
+    return [np.asarray(rng.normal(size=size) * 10.0 ** rng.integers(-3, 3, size=size), dtype) for _ in range(count)]
+
+
+def combination_errors(dtype_name: str, fused: bool, size: int = 1500) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """`rounding_errors` of `rounded_once_combination` for each of WEIGHTS,
+    compiled alone or fused into consumers that read it several times."""
+    dtype = jnp.dtype(dtype_name)
+    out = {}
+    for seed, (name, coefficients) in enumerate(WEIGHTS.items()):
+        slopes = random_slopes(len(coefficients), size, dtype, seed)
+
+        def combined(dt, *slopes, coefficients=coefficients):
+            u = rounded_once_combination(dt, coefficients, slopes, slopes[0])
+            assert u is not None
+            if not fused:
+                return u
+            return u, jnp.sin(u) * u + u * u - 3.0 * u, jnp.sqrt(u * u + 1.0)
+
+        result = jax.jit(combined)(jnp.asarray(0.1, dtype), *slopes)
+        computed = np.asarray(result[0] if fused else result)
+        out[name] = rounding_errors(0.1, coefficients, slopes, computed)
+    return out
+
+
+def assert_rounded_once(errors: dict[str, tuple[np.ndarray, np.ndarray]]):
+    for name, (in_ulps, in_tail_units) in errors.items():
+        # Within half an ulp but for the tail's rounding, which shows only where
+        # the terms cancel; and without cancellation, the nearest float nearly
+        # always (a tie within the tail's rounding is all that can miss it).
+        assert np.all((in_ulps <= 0.5) | (in_tail_units <= 16)), (name, in_ulps.max(), in_tail_units.max())
+        assert np.mean(in_ulps <= 0.5) >= 0.995, (name, np.mean(in_ulps <= 0.5))
+
+
+@pytest.mark.parametrize("dtype_name", ["float64", "float32"])
+@pytest.mark.parametrize("fused", [False, True], ids=["alone", "fused"])
+def test_combination_is_rounded_once(dtype_name, fused):
+    assert_rounded_once(combination_errors(dtype_name, fused))
+
+
+_DEFAULT_CODEGEN = """
+import sys
+import jax
+jax.config.update("jax_enable_x64", True)
+from test_exact_sums import assert_rounded_once, combination_errors
+for dtype_name in ("float64", "float32"):
+    for fused in (False, True):
+        assert_rounded_once(combination_errors(dtype_name, fused))
+"""
+
+
+def test_combination_is_rounded_once_under_default_codegen():
+    """XLA's default CPU code generator, with LLVM's optimisations, is where
+    multiply-adds are contracted (the tests otherwise compile without them:
+    conftest.py)."""
+    env = dict(os.environ, XLA_FLAGS="", PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
+    subprocess.run([sys.executable, "-c", _DEFAULT_CODEGEN], check=True, env=env, cwd=TESTS, timeout=300)
+
+
+def test_combination_refuses_integer_slopes():
+    with pytest.raises(TypeError, match="float32 or float64"):
+        rounded_once_combination(0.1, (0.5, 0.5), (jnp.arange(3), jnp.arange(3)), jnp.arange(3))
+
+
+def test_combination_without_terms_is_none():
+    zero = jnp.zeros(3)
+    assert rounded_once_combination(0.1, (0.0, 0.5), (zero, None), zero) is None
+
+
+@pytest.mark.parametrize(
+    "tableau,coordinates,adjoint",
+    [
+        (pk.stormer_verlet, pk.Exp(), False),
+        (pk.stormer_verlet, pk.Cayley(), False),
+        (pk.lobatto_iiia_iiib6, pk.Exp(), False),
+        (pk.lobatto_iiia_iiib4, pk.Exp(), True),
+    ],
+    ids=["SV exp", "SV Cayley", "Lobatto 6 exp", "Adjoint of Lobatto 4"],
+)
+def test_step_increment_is_rounded_once_from_its_stages(tableau, coordinates, adjoint):
+    """The increment u = h·Σ bᵢKᵢ a batch of steps returns, against the exact
+    value from the stage slopes the same steps return: the step rounds it
+    once, not by the stages' own formula (whose rounding error, the stages
+    being its fixed point, would lean the same way every step)."""
+    bundle = pk.Cotangent(pk.SO3)
+    method = pk.PRKMK(bundle, coordinates, tableau, form="body")
+    method = pk.Adjoint(method) if adjoint else method
+    field = rigid_body_field(bundle, "body")
+    momenta = np.random.default_rng(4).normal(size=(200, 3))
+    rotations = np.stack([random_rotation(seed) for seed in range(200)])
+    y0 = pk.BundleElement(pk.SO3(jnp.asarray(rotations)), jnp.asarray(momenta))
+
+    @jax.jit
+    @jax.vmap
+    def steps(y):
+        step = method.step(field, 0.0, y, 0.1, jnp.asarray(INERTIA))
+        return step.increment[0], [k for k, _ in step.carried[1]], step.result
+
+    u, slopes, result = steps(y0)
+    assert bool(jnp.all(result == pk.RESULTS.successful))
+    u, slopes = np.asarray(u).ravel(), [np.asarray(k).ravel() for k in slopes]
+    in_ulps, in_tail_units = rounding_errors(0.1, tableau.b_first, slopes, u)
+    assert np.all((in_ulps <= 0.5) | (in_tail_units <= 16)), (in_ulps.max(), in_tail_units.max())
+    assert np.mean(in_ulps <= 0.5) >= 0.995
