@@ -2,6 +2,10 @@
 an independent SciPy reference solution."""
 
 import functools
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -247,6 +251,17 @@ class PositiveReals(pk.groups.AbstractLieGroup):
     @classmethod
     def dexp_inv(cls, u, v):
         return v
+
+
+def run_under_default_codegen(code: str, *args: str) -> None:
+    """Run `code` (a Python script) in a subprocess with XLA_FLAGS empty, so
+    that XLA compiles with its defaults (LLVM's optimisations on; the tests
+    otherwise compile without them, conftest.py), the tests' folder on its
+    path; raises if it fails."""
+    tests = Path(__file__).resolve().parent
+    path = os.pathsep.join([str(tests), os.environ.get("PYTHONPATH", "")])
+    env = dict(os.environ, XLA_FLAGS="", PYTHONPATH=path)
+    subprocess.run([sys.executable, "-c", code, *args], check=True, env=env, cwd=tests, timeout=300)
 
 
 def codegen_probe() -> dict[str, np.ndarray]:

@@ -4,11 +4,7 @@ this process and under XLA's default code generator (where LLVM may
 contract a·b + c into a fused multiply-add); and the PRKMK step's increment
 against the exact value from its own stage slopes."""
 
-import os
-import subprocess
-import sys
 from fractions import Fraction
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -16,10 +12,9 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import INERTIA, random_rotation, rigid_body_field
+from helpers import INERTIA, random_rotation, rigid_body_field, run_under_default_codegen
 from prkmk_jax.exact_sums import rounded_once_combination
 
-TESTS = Path(__file__).resolve().parent
 WEIGHTS = {
     "symplectic Euler": (1.0,),
     "a power of two": (-0.25,),
@@ -96,7 +91,6 @@ def test_combination_is_rounded_once(dtype_name, fused):
 
 
 _DEFAULT_CODEGEN = """
-import sys
 import jax
 jax.config.update("jax_enable_x64", True)
 from test_exact_sums import assert_rounded_once, combination_errors
@@ -110,8 +104,7 @@ def test_combination_is_rounded_once_under_default_codegen():
     """XLA's default CPU code generator, with LLVM's optimisations, is where
     multiply-adds are contracted (the tests otherwise compile without them:
     conftest.py)."""
-    env = dict(os.environ, XLA_FLAGS="", PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
-    subprocess.run([sys.executable, "-c", _DEFAULT_CODEGEN], check=True, env=env, cwd=TESTS, timeout=300)
+    run_under_default_codegen(_DEFAULT_CODEGEN)
 
 
 def test_combination_refuses_integer_slopes():

@@ -5,16 +5,9 @@ Here the same programs compiled with XLA's defaults, in a subprocess with
 XLA_FLAGS empty, agree with this process's to round-off, so what the
 other tests check holds for the defaults too."""
 
-import os
-import subprocess
-import sys
-from pathlib import Path
-
 import numpy as np
 
-from helpers import codegen_probe
-
-TESTS = Path(__file__).resolve().parent
+from helpers import codegen_probe, run_under_default_codegen
 
 _SCRIPT = """
 import sys
@@ -28,8 +21,7 @@ np.savez(sys.argv[1], **codegen_probe())
 
 def test_default_code_generator_agrees_to_round_off(tmp_path):
     out = tmp_path / "default.npz"
-    env = dict(os.environ, XLA_FLAGS="", PYTHONPATH=str(TESTS))
-    subprocess.run([sys.executable, "-c", _SCRIPT, str(out)], check=True, env=env, cwd=TESTS, timeout=300)
+    run_under_default_codegen(_SCRIPT, str(out))
     default = np.load(out)
     here = codegen_probe()
     assert sorted(default.files) == sorted(here)
