@@ -18,11 +18,13 @@ composed to order 8). Paths: `integrate` (lax.scan) vmapped over the batch,
 `in_state` (the batch as leading axes of the state, one run),
 `diffeqsolve(PRKMKSolver)`, and `value_and_grad` of a loss on the final
 state with respect to the inertia through `integrate` (vmapped), through
-its stored steps or (`reversible_grad`) by `ReversibleGradient(None)`.
+its stored steps or (`reversible_grad`) by `ReversibleGradient(None)`, and
+through `diffeqsolve` by `ReversibleAdjoint(None)` (`reversible_adjoint`).
 
     python benchmarks/against_revision.py --rev a1a3087 --out benchmarks/results
     python benchmarks/against_revision.py --quick          # against HEAD
     python benchmarks/against_revision.py --rev a1a3087 --float32 --name against_revision_float32
+    python benchmarks/against_revision.py --rev a1a3087 --gradients --name against_revision_gradients
 """
 
 import importlib
@@ -82,11 +84,12 @@ def _runs(lib, tableau, coordinates, steps, scene="free body"):
         traj = lib.integrate(method, field, y0, 0.0, H, steps, inertia, save_every=steps, gradient=gradient)
         return traj.ys.base.matrix[-1], traj.ys.fiber[-1]
 
-    def diffeqsolve(q0, pi0, inertia):
+    def diffeqsolve(q0, pi0, inertia, adjoint=None):
         y0 = lib.BundleElement(lib.SO3(q0), pi0)
         # Times in the state's dtype: diffeqsolve promotes the state to theirs.
         t0, t1, dt = (jnp.asarray(x, q0.dtype) for x in (0.0, steps * H, H))
-        sol = diffrax.diffeqsolve(lib.PRKMKTerm(field), lib.PRKMKSolver(method), t0, t1, dt, y0, inertia, max_steps=steps)
+        adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
+        sol = diffrax.diffeqsolve(lib.PRKMKTerm(field), lib.PRKMKSolver(method), t0, t1, dt, y0, inertia, max_steps=steps, adjoint=adjoint)
         return sol.ys.base.matrix[-1], sol.ys.fiber[-1]
 
     def value_and_grad(qs, pis, inertia, gradient=None):
@@ -99,6 +102,13 @@ def _runs(lib, tableau, coordinates, steps, scene="free body"):
     def reversible_grad(qs, pis, inertia):
         return value_and_grad(qs, pis, inertia, lib.ReversibleGradient(None))
 
+    def reversible_adjoint(qs, pis, inertia):
+        def loss(inertia):
+            q, pi = jax.vmap(lambda q, p: diffeqsolve(q, p, inertia, lib.ReversibleAdjoint(None)))(qs, pis)
+            return jnp.sum(q[..., 0, :] ** 2 * jnp.arange(3)) + jnp.sum(pi**2)
+
+        return jax.value_and_grad(loss)(inertia)
+
     batched = lambda fn: jax.vmap(fn, in_axes=(0, 0, None))  # noqa: E731
     return {
         "integrate": batched(integrate),
@@ -106,6 +116,7 @@ def _runs(lib, tableau, coordinates, steps, scene="free body"):
         "diffeqsolve": batched(diffeqsolve),
         "value_and_grad": value_and_grad,
         "reversible_grad": reversible_grad,
+        "reversible_adjoint": reversible_adjoint,
     }
 
 
@@ -145,6 +156,7 @@ def main(argv=None):
         parser.add_argument("--name", default="against_revision", help="stem of the results file")
         parser.add_argument("--splittings", action="store_true", help="the exact-flow splittings' cases instead of PRKMK's")
         parser.add_argument("--float32", action="store_true", help="the float32 cases of both, alone (what renormalises the state)")
+        parser.add_argument("--gradients", action="store_true", help="PRKMK's gradient cases alone, beside their forward runs")
 
     args, out = C.cli(__doc__, argv, arguments)
     before, sha = import_revision(args.rev)
@@ -159,6 +171,13 @@ def main(argv=None):
         cases += [("lobatto_iiia_iiib4", "exp", "integrate", 16384, jnp.float32, "free body")]
         cases += [("splitting", "exp", path, b, jnp.float32, "free body") for path, b in (("integrate", 1), ("in_state", 1024))]
         rounds, work = args.rounds, 200_000
+    elif args.gradients:
+        cases = [
+            (tab, coords, path, 64, jnp.float64, "free body")
+            for tab, coords in (("stormer_verlet", "exp"), ("stormer_verlet", "cayley"), ("lobatto_iiia_iiib4", "exp"))
+            for path in ("integrate", "value_and_grad", "reversible_grad", "reversible_adjoint")
+        ]
+        rounds, work = args.rounds, 64_000
     elif args.splittings:
         cases = [
             (method, coords, path, batch, jnp.float64, "free body")

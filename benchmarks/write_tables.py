@@ -44,7 +44,8 @@ Tables:
 - `work_precision`, `long_time`, `heavy_top`, `throughput`, `stability`,
   `floor`, `against_scan`, `explicit_stages`, `root_finders`,
   `against_revision`, `gradients`, `ensembles`, `xla_codegen`: the script of the same name's results
-  file, as its function's docstring says.
+  file, as its function's docstring says; `against_revision_gradients`:
+  `against_revision.py --gradients`' file.
 """
 
 import argparse
@@ -73,6 +74,7 @@ DOCUMENTS = {
         "explicit_stages",
         "root_finders",
         "against_revision",
+        "against_revision_gradients",
         "gradients",
         "ensembles",
         "xla_codegen",
@@ -266,29 +268,29 @@ def stage_layout_table(_entries=None, root: Path | None = None) -> str:
     return _table([*headers, "compile loop, s"], rows)
 
 
-def against_revision_table(_entries=None, root: Path | None = None) -> str:
+def against_revision_table(_entries=None, root: Path | None = None, name: str = "against_revision") -> str:
     """`against_revision.py`'s results: ns per trajectory-step now and at
-    the earlier revision, interleaved."""
-    data = results_file("against_revision.json", root)
+    the earlier revision, interleaved, and (for the gradient cases) the
+    compile times of both."""
+    data = results_file(f"{name}.json", root)
     device = device_name(data["machine"])
-    rows = [
-        [
-            r.get("scene", "free body"),
-            r["tableau"],
-            r["coordinates"],
-            r["path"],
-            r["dtype"],
-            str(r["batch"]),
-            device,
-            f"{r['ns_per_traj_step']['now']:.0f}",
-            f"{r['ns_per_traj_step']['before']:.0f}",
-            f"{r['now_over_before']:.2f}",
-            f"{r['max_abs_difference']:.1e}",
-        ]
-        for r in data["rows"]
-    ]
-    headers = ["scene", "tableau", "coordinates", "path", "dtype", "batch", "device", "now, ns", f"at {data['sha']}, ns"]
-    return _measured_on(data) + "\n\n" + _table([*headers, "now / before", "largest difference"], rows)
+    with_compile = name == "against_revision_gradients"
+    rows = []
+    for r in data["rows"]:
+        row = [r.get("scene", "free body"), r["tableau"], r["coordinates"], r["path"], r["dtype"], str(r["batch"]), device]
+        row += [f"{r['ns_per_traj_step']['now']:.0f}", f"{r['ns_per_traj_step']['before']:.0f}", f"{r['now_over_before']:.2f}"]
+        if with_compile:
+            row += [f"{r['compile_s']['now']:.2f}", f"{r['compile_s']['before']:.2f}"]
+        rows.append([*row, f"{r['max_abs_difference']:.1e}"])
+    headers = ["scene", "tableau", "coordinates", "path", "dtype", "batch", "device", "now, ns", f"at {data['sha']}, ns", "now / before"]
+    if with_compile:
+        headers += ["compile now, s", "compile before, s"]
+    return _measured_on(data) + "\n\n" + _table([*headers, "largest difference"], rows)
+
+
+def against_revision_gradients_table(_entries=None, root: Path | None = None) -> str:
+    """`against_revision.py --gradients`' results (`against_revision_table`)."""
+    return against_revision_table(_entries, root, "against_revision_gradients")
 
 
 def round_off_table(_entries=None, root: Path | None = None) -> str:
@@ -667,6 +669,7 @@ def xla_codegen_table(_entries=None, root: Path | None = None) -> str:
 OTHER_SOURCES = (
     "stage_layout.json",
     "against_revision.json",
+    "against_revision_gradients.json",
     "gradients.json",
     "ensembles.json",
     "round_off.json",
@@ -701,6 +704,7 @@ TABLES = {
     "explicit_stages": explicit_stages_table,
     "root_finders": root_finders_table,
     "against_revision": against_revision_table,
+    "against_revision_gradients": against_revision_gradients_table,
     "gradients": gradients_table,
     "ensembles": ensembles_table,
     "xla_codegen": xla_codegen_table,

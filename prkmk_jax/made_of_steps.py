@@ -19,6 +19,7 @@ a second, fully implicit half step.
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, PyTree
 
 from .bundles import BundleElement
@@ -63,6 +64,13 @@ class Adjoint(AbstractMadeOfSteps):
     solved by the method's root finder. Then f(−W)·yₙ₊₁ = yₙ is the reversed
     step, since f(−W) = f(W)⁻¹ for both coordinate maps. In a vector space
     this is the PRK method of the adjoint tableau.
+
+    The system is as small as the method's own stage plan allows: where the
+    field has η ≡ 0 (`stage_plan`; not with `coupling="tableau"`) the K's
+    alone are unknowns, and a stage whose rows of A are the weights (the
+    last of Lobatto IIIA) has U_i = −W, so Y_i = yₙ, where the field is
+    known: only df⁻¹_{−W} changes with the iterate. An adjoint step of
+    Störmer–Verlet on the free body then costs what the method's step does.
     """
 
     method: PRKMK | Splitting  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a field narrows an AbstractVar's type
@@ -94,37 +102,60 @@ class Adjoint(AbstractMadeOfSteps):
         t = jnp.asarray(t, dtype)
         zeros = self.bundle.algebra_zeros(y)
         field_now, guesses = method.extrapolated_guesses(vector_field, t, y, args, carried)
+        # η ≡ 0 makes L ≡ 0 (`stage_plan`): the K's alone are unknowns, and
+        # no stage point moves the fiber by an increment.
+        fiber_free = method.stage_dependence(vector_field, t, y, args).second_zero
 
         def combination(scale, coefficients, slopes, zero):
             out = static_combination(scale, coefficients, slopes, zero)
             return zero if out is None else out
 
-        def increment(stages):
-            first, second = [k_i for k_i, _ in stages], [l_i for _, l_i in stages]
-            return combination(dt, tab.b_first, first, zeros[0]), combination(dt, tab.b_second, second, zeros[1])
+        def increment(first, second):
+            v = None if fiber_free else combination(dt, tab.b_second, second, zeros[1])
+            return combination(dt, tab.b_first, first, zeros[0]), v
 
-        def all_slopes(stages):
-            first, second = [k_i for k_i, _ in stages], [l_i for _, l_i in stages]
-            y_end = method.apply_increment(increment(stages), y)
+        def all_slopes(unknowns):
+            first, second = (list(unknowns), None) if fiber_free else ([k for k, _ in unknowns], [l_i for _, l_i in unknowns])
+            y_end = method.apply_increment(increment(first, second), y)
             out = []
             for i in range(tab.num_stages):
                 tt = t + (1.0 - float(tab.c_first[i])) * dt
-                if not (tab.a_first[i].any() or tab.a_second[i].any()):  # U_i = 0: Y_i = yₙ₊₁, df⁻¹_0 = I
-                    out.append(method.generator(vector_field, tt, y_end, args))
-                    continue
-                U = (combination(-dt, tab.a_first[i], first, zeros[0]), combination(-dt, tab.a_second[i], second, zeros[1]))
-                out.append(method.slope_at(vector_field, tt, U, y_end, args))
+                if not (tab.a_first[i].any() or (not fiber_free and tab.a_second[i].any())):  # U_i = 0: Y_i = yₙ₊₁, df⁻¹_0 = I
+                    slope = method.generator(vector_field, tt, y_end, args)
+                else:
+                    u = combination(-dt, tab.a_first[i], first, zeros[0])
+                    v = None if fiber_free else combination(-dt, tab.a_second[i], second, zeros[1])
+                    if _reaches_start(tab, i, fiber_free):
+                        # U_i = −W: Y_i = f(−W)·f(W)·yₙ = yₙ, where the field is
+                        # known; only df⁻¹ moves with the slopes.
+                        slope = method.slope(self.bundle.zero_filled((u, v), y), field_now)
+                    else:
+                        slope = method.slope_at(vector_field, tt, (u, v), y_end, args)
+                out.append(slope[0] if fiber_free else slope)
             return tuple(out)
 
-        stages, result, iterations = method.solve_implicit(all_slopes, guesses, dtype)
-        u_next = increment(stages)
+        start = tuple(k for k, _ in guesses) if fiber_free else guesses
+        solved, result, iterations = method.solve_implicit(all_slopes, start, dtype)
+        stages = tuple((k, zeros[1]) for k in solved) if fiber_free else solved
+        first, second = [k for k, _ in stages], [l_i for _, l_i in stages]
+        u_next, v_next = increment(first, second)
         if method.iterate_until == "round-off":
             # As PRKMK's step: u rounded once from the solved slopes, not by
             # the formula of which they are a fixed point (`exact_sums`).
-            u_rounded_once = rounded_once_combination(dt, tab.b_first, [k_i for k_i, _ in stages], zeros[0])
-            u_next = (zeros[0] if u_rounded_once is None else u_rounded_once, u_next[1])
-        y_next = method.advance(u_next, y)
-        return Step(y_next, u_next, flag_nonfinite(result, y_next), iterations, (field_now, stages))
+            u_rounded_once = rounded_once_combination(dt, tab.b_first, first, zeros[0])
+            u_next = zeros[0] if u_rounded_once is None else u_rounded_once
+        y_next = method.advance((u_next, v_next), y)
+        increment_made = (u_next, zeros[1] if v_next is None else v_next)
+        return Step(y_next, increment_made, flag_nonfinite(result, y_next), iterations, (field_now, stages))
+
+
+def _reaches_start(tab, i: int, fiber_free: bool) -> bool:
+    """Whether stage i of the adjoint step sits at the step's start: its rows
+    of A equal the weights (stiffly accurate stages, the last of Lobatto
+    IIIA; the second part does not count where L ≡ 0), so U_i = −W, and its
+    time is the start's (c_i = 1)."""
+    rows_are_weights = np.array_equal(tab.a_first[i], tab.b_first) and (fiber_free or np.array_equal(tab.a_second[i], tab.b_second))
+    return rows_are_weights and float(tab.c_first[i]) == 1.0
 
 
 class Symmetrized(AbstractMadeOfSteps):

@@ -37,7 +37,7 @@ from .bundles import AbstractBundle, AlgebraPair, BundleElement
 from .coordinates import AbstractCoordinates, Exp
 from .exact_sums import rounded_once_combination
 from .method import RESULTS, AbstractFieldOnBundle, AbstractMethod, Step, Time, VectorField, first_failure, flag_nonfinite
-from .stage_plan import COUPLED, Explicit, plan_stages, stage_dependence
+from .stage_plan import COUPLED, Explicit, StageDependence, plan_stages, stage_dependence
 from .tableaus import PartitionedTableau, stormer_verlet
 
 STAGE_SLOPES_NAME = "prkmk_stage_slopes"
@@ -347,15 +347,20 @@ class PRKMK(AbstractMethod):
         """The order in which this step finds its stage slopes at (t, y)
         (`stage_plan.plan_stages`; trace-time, from the field's program
         when `coupling="traced"`)."""
+        return plan_stages(self.tableau, self.stage_dependence(vector_field, t, y, args))
+
+    def stage_dependence(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None) -> StageDependence:
+        """What a stage's slopes depend on, and whether L ≡ 0
+        (`stage_plan.stage_dependence`; trace-time): `COUPLED` when
+        `coupling="tableau"`."""
         if self.coupling == "tableau":
-            return plan_stages(self.tableau, COUPLED)
+            return COUPLED
         zeros = self.bundle.algebra_zeros(y)
 
         def stage(u, v):
             return self.slope_at(vector_field, t, (u, v), y, args)
 
-        dependence = stage_dependence(stage, lambda state: self.generator(vector_field, t, state, args), zeros, y)
-        return plan_stages(self.tableau, dependence)
+        return stage_dependence(stage, lambda state: self.generator(vector_field, t, state, args), zeros, y)
 
     def solve_implicit(self, block_slopes, guess, dtype):
         """Solve block_slopes(K) = K for the slopes K of an implicit block

@@ -116,6 +116,23 @@ def test_adjoint_undoes_the_reversed_step(bundle, tab, coordinates, form):
     assert max_leaf_difference(adjoint.step(field, 0.0, y0, h, ARGS).y, method.step(field, 0.0, y0, h, ARGS).y) > 1e-8
 
 
+@pytest.mark.parametrize("tab", [pk.stormer_verlet, pk.lobatto_iiia_iiib4, pk.lobatto_iiia_iiib6], ids=["SV", "L4", "L6"])
+def test_adjoint_step_takes_the_same_step_whatever_the_stage_plan(tab):
+    """With η ≡ 0 the adjoint iterates the K's alone and evaluates a stage
+    whose rows are the weights at the step's start; with
+    `coupling="tableau"` it iterates every (K, L) and moves every stage
+    point from the step's end. Both solve the same equations."""
+    field = rigid_body_field(COTANGENT, "body")
+    y0 = initial_state(COTANGENT)
+    methods = [pk.PRKMK(COTANGENT, pk.Exp(None), tab, form="body", coupling=c) for c in ("traced", "tableau")]
+    steps = [pk.Adjoint(method).step(field, 0.0, y0, 0.1, ARGS) for method in methods]
+    assert all(s.result == pk.RESULTS.successful for s in steps)
+    assert max_leaf_difference(steps[0].y, steps[1].y) <= 1e-13
+    assert max_leaf_difference(steps[0].carried[1], steps[1].carried[1]) <= 1e-12
+    # and each undoes the method's step of −h
+    assert max_leaf_difference(methods[0].step(field, 0.1, steps[0].y, -0.1, ARGS).y, y0) <= 1e-13
+
+
 def _adjoint_tableau(tab):
     """The classical adjoint of an RK pair: a*ᵢⱼ = b_{s+1−j} − a_{s+1−i,s+1−j}, b* = b reversed."""
 
