@@ -156,7 +156,7 @@ def main(argv=None):
         parser.add_argument("--name", default="against_revision", help="stem of the results file")
         parser.add_argument("--splittings", action="store_true", help="the exact-flow splittings' cases instead of PRKMK's")
         parser.add_argument("--float32", action="store_true", help="the float32 cases of both, alone (what renormalises the state)")
-        parser.add_argument("--gradients", action="store_true", help="PRKMK's gradient cases alone, beside their forward runs")
+        parser.add_argument("--gradients", action="store_true", help="the gradient cases alone, beside their forward runs")
 
     args, out = C.cli(__doc__, argv, arguments)
     before, sha = import_revision(args.rev)
@@ -176,6 +176,11 @@ def main(argv=None):
             (tab, coords, path, 64, jnp.float64, "free body")
             for tab, coords in (("stormer_verlet", "exp"), ("stormer_verlet", "cayley"), ("lobatto_iiia_iiib4", "exp"))
             for path in ("integrate", "value_and_grad", "reversible_grad", "reversible_adjoint")
+        ]
+        cases += [
+            (method, coords, path, 64, jnp.float64, "free body")
+            for method, coords in (("splitting", "exp"), ("splitting", "cayley"), ("splitting kahan_li_6", "exp"))
+            for path in ("integrate", "value_and_grad", "reversible_grad")
         ]
         rounds, work = args.rounds, 64_000
     elif args.splittings:

@@ -55,6 +55,28 @@ def rotated_rows(z: Packed, pairs: tuple[tuple[int, int], ...], sine: Array, cos
     return jnp.stack(rows)
 
 
+def _pair_tables(num_rows: int, pairs: tuple[tuple[int, int], ...]):
+    """For rows turned in pairs: each row's partner (itself if unmoved), the
+    sign its partner enters with (+1 for the first of a pair, −1 for the
+    second, 0 unmoved) and whether it moves."""
+    partner, sign = np.arange(num_rows), np.zeros(num_rows)
+    for j, k in pairs:
+        partner[j], partner[k], sign[j], sign[k] = k, j, 1.0, -1.0
+    return partner, sign, sign != 0
+
+
+def rotated_array(z: Packed, pairs: tuple[tuple[int, int], ...], sine: Array, cosine: Array) -> Packed:
+    """`rotated_rows` as whole-array arithmetic: z·c + (±s)·z[partner] on the
+    moved rows, z on the others. The same values; XLA computes it as one
+    array, where the rows written out one by one become one small
+    computation per row when several consumers read them (the reverse
+    step's)."""
+    partner, sign, moved = _pair_tables(z.shape[0], pairs)
+    shape = (z.shape[0],) + (1,) * (z.ndim - 1)
+    scale = jnp.where(moved.reshape(shape), cosine, jnp.ones_like(cosine))
+    return scale * z + (sign.reshape(shape) * sine) * jnp.take(z, partner, axis=0)
+
+
 class AbstractExactFlow(eqx.Module):
     """One part of a split vector field and its flow."""
 
@@ -135,15 +157,17 @@ class AxisRotation(AbstractExactFlow):
 
     def moved_back(self, z, coefficients):
         sine, cosine = coefficients
-        return rotated_rows(z, self.pairs, -sine, cosine)
+        return rotated_array(z, self.pairs, -sine, cosine)
 
     def pulled_back(self, z, coefficients, cotangent):
         # (a, b) ↦ (c a + s b, c b − s a) is a rotation: its transpose is the
         # inverse, and its derivatives in s and c read the rows it turns.
         sine, cosine = coefficients
-        cotangent_sine = sum(cotangent[j] * z[k] - cotangent[k] * z[j] for j, k in self.pairs)
-        cotangent_cosine = sum(cotangent[j] * z[j] + cotangent[k] * z[k] for j, k in self.pairs)
-        return rotated_rows(cotangent, self.pairs, -sine, cosine), (cotangent_sine, cotangent_cosine)
+        partner, sign, moved = _pair_tables(z.shape[0], self.pairs)
+        shape = (z.shape[0],) + (1,) * (z.ndim - 1)
+        cotangent_sine = jnp.sum(sign.reshape(shape) * cotangent * jnp.take(z, partner, axis=0), axis=0)
+        cotangent_cosine = jnp.sum(moved.reshape(shape) * cotangent * z, axis=0)
+        return rotated_array(cotangent, self.pairs, -sine, cosine), (cotangent_sine, cotangent_cosine)
 
 
 class MomentumKick(AbstractExactFlow):
