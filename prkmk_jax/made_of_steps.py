@@ -96,57 +96,71 @@ class Adjoint(AbstractMadeOfSteps):
     def carried_step(self, vector_field, t, y, dt, args, carried) -> Step:
         if isinstance(self.method, Splitting):  # symmetric: Φ* = Φ
             return self.method.carried_step(vector_field, t, y, dt, args, carried)
-        method, tab = self.method, self.method.tableau
-        dtype = jnp.result_type(*jax.tree.leaves(y))
-        dt = jnp.asarray(dt, dtype)
-        t = jnp.asarray(t, dtype)
-        zeros = self.bundle.algebra_zeros(y)
-        field_now, guesses = method.extrapolated_guesses(vector_field, t, y, args, carried)
-        # η ≡ 0 makes L ≡ 0 (`stage_plan`): the K's alone are unknowns, and
-        # no stage point moves the fiber by an increment.
-        fiber_free = method.stage_dependence(vector_field, t, y, args).second_zero
+        field_now, guesses = self.method.extrapolated_guesses(vector_field, t, y, args, carried)
+        return _adjoint_step(self.method, vector_field, t, y, dt, args, field_now, guesses, stages_solved=False)
 
-        def combination(scale, coefficients, slopes, zero):
-            out = static_combination(scale, coefficients, slopes, zero)
-            return zero if out is None else out
+    def step_at_stages(self, vector_field, t, y, dt, args, stages) -> Step:
+        """The adjoint step whose stage slopes are known to solve its stage
+        equations, evaluated once there (`PRKMK.step_at_stages`)."""
+        if not isinstance(self.method, PRKMK):
+            raise TypeError(f"step_at_stages needs the adjoint of a PRKMK method, got the adjoint of a {type(self.method).__name__}.")
+        field_now = self.method.generator(vector_field, t, y, args)
+        return _adjoint_step(self.method, vector_field, t, y, dt, args, field_now, stages, stages_solved=True)
 
-        def increment(first, second):
-            v = None if fiber_free else combination(dt, tab.b_second, second, zeros[1])
-            return combination(dt, tab.b_first, first, zeros[0]), v
 
-        def all_slopes(unknowns):
-            first, second = (list(unknowns), None) if fiber_free else ([k for k, _ in unknowns], [l_i for _, l_i in unknowns])
-            y_end = method.apply_increment(increment(first, second), y)
-            out = []
-            for i in range(tab.num_stages):
-                tt = t + (1.0 - float(tab.c_first[i])) * dt
-                if not (tab.a_first[i].any() or (not fiber_free and tab.a_second[i].any())):  # U_i = 0: Y_i = yₙ₊₁, df⁻¹_0 = I
-                    slope = method.generator(vector_field, tt, y_end, args)
+def _adjoint_step(method: PRKMK, vector_field, t, y, dt, args, field_now, guesses, stages_solved: bool) -> Step:
+    """A step of `Adjoint(method)`, its stages started from `guesses` (or,
+    `stages_solved`, evaluated once there: `PRKMK.step_at_stages`)."""
+    tab = method.tableau
+    dtype = jnp.result_type(*jax.tree.leaves(y))
+    dt = jnp.asarray(dt, dtype)
+    t = jnp.asarray(t, dtype)
+    zeros = method.bundle.algebra_zeros(y)
+    # η ≡ 0 makes L ≡ 0 (`stage_plan`): the K's alone are unknowns, and
+    # no stage point moves the fiber by an increment.
+    fiber_free = method.stage_dependence(vector_field, t, y, args).second_zero
+
+    def combination(scale, coefficients, slopes, zero):
+        out = static_combination(scale, coefficients, slopes, zero)
+        return zero if out is None else out
+
+    def increment(first, second):
+        v = None if fiber_free else combination(dt, tab.b_second, second, zeros[1])
+        return combination(dt, tab.b_first, first, zeros[0]), v
+
+    def all_slopes(unknowns):
+        first, second = (list(unknowns), None) if fiber_free else ([k for k, _ in unknowns], [l_i for _, l_i in unknowns])
+        y_end = method.apply_increment(increment(first, second), y)
+        out = []
+        for i in range(tab.num_stages):
+            tt = t + (1.0 - float(tab.c_first[i])) * dt
+            if not (tab.a_first[i].any() or (not fiber_free and tab.a_second[i].any())):  # U_i = 0: Y_i = yₙ₊₁, df⁻¹_0 = I
+                slope = method.generator(vector_field, tt, y_end, args)
+            else:
+                u = combination(-dt, tab.a_first[i], first, zeros[0])
+                v = None if fiber_free else combination(-dt, tab.a_second[i], second, zeros[1])
+                if _reaches_start(tab, i, fiber_free):
+                    # U_i = −W: Y_i = f(−W)·f(W)·yₙ = yₙ, where the field is
+                    # known; only df⁻¹ moves with the slopes.
+                    slope = method.slope(method.bundle.zero_filled((u, v), y), field_now)
                 else:
-                    u = combination(-dt, tab.a_first[i], first, zeros[0])
-                    v = None if fiber_free else combination(-dt, tab.a_second[i], second, zeros[1])
-                    if _reaches_start(tab, i, fiber_free):
-                        # U_i = −W: Y_i = f(−W)·f(W)·yₙ = yₙ, where the field is
-                        # known; only df⁻¹ moves with the slopes.
-                        slope = method.slope(self.bundle.zero_filled((u, v), y), field_now)
-                    else:
-                        slope = method.slope_at(vector_field, tt, (u, v), y_end, args)
-                out.append(slope[0] if fiber_free else slope)
-            return tuple(out)
+                    slope = method.slope_at(vector_field, tt, (u, v), y_end, args)
+            out.append(slope[0] if fiber_free else slope)
+        return tuple(out)
 
-        start = tuple(k for k, _ in guesses) if fiber_free else guesses
-        solved, result, iterations = method.solve_implicit(all_slopes, start, dtype)
-        stages = tuple((k, zeros[1]) for k in solved) if fiber_free else solved
-        first, second = [k for k, _ in stages], [l_i for _, l_i in stages]
-        u_next, v_next = increment(first, second)
-        if method.iterate_until == "round-off":
-            # As PRKMK's step: u rounded once from the solved slopes, not by
-            # the formula of which they are a fixed point (`exact_sums`).
-            u_rounded_once = rounded_once_combination(dt, tab.b_first, first, zeros[0])
-            u_next = zeros[0] if u_rounded_once is None else u_rounded_once
-        y_next = method.advance((u_next, v_next), y)
-        increment_made = (u_next, zeros[1] if v_next is None else v_next)
-        return Step(y_next, increment_made, flag_nonfinite(result, y_next), iterations, (field_now, stages))
+    start = tuple(k for k, _ in guesses) if fiber_free else guesses
+    solved, result, iterations = method.solve_implicit(all_slopes, start, dtype, guess_solves=stages_solved)
+    stages = tuple((k, zeros[1]) for k in solved) if fiber_free else solved
+    first, second = [k for k, _ in stages], [l_i for _, l_i in stages]
+    u_next, v_next = increment(first, second)
+    if method.iterate_until == "round-off":
+        # As PRKMK's step: u rounded once from the solved slopes, not by
+        # the formula of which they are a fixed point (`exact_sums`).
+        u_rounded_once = rounded_once_combination(dt, tab.b_first, first, zeros[0])
+        u_next = zeros[0] if u_rounded_once is None else u_rounded_once
+    y_next = method.advance((u_next, v_next), y)
+    increment_made = (u_next, zeros[1] if v_next is None else v_next)
+    return Step(y_next, increment_made, flag_nonfinite(result, y_next), iterations, (field_now, stages))
 
 
 def _reaches_start(tab, i: int, fiber_free: bool) -> bool:

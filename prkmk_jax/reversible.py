@@ -175,30 +175,23 @@ def _step_back(method, undo, params_dynamic, params_static, t_start, t_end, dt, 
         y_prev, cotangent_prev, args_step = method.reverse_step(t_start, y_next, dt, args, cotangent)
         return y_prev, cotangent_prev, (args_step, jax.tree.map(jnp.zeros_like, params_dynamic[1])), undo_carried, result
     undone = undo.carried_step(vector_field, t_end, y_next, -dt, args, undo_carried)
-    start = _stages_of_undone_step(method, undo, vector_field, t_start, undone, args)
 
     def forward(y, dynamic):
         a, f = eqx.combine(dynamic, params_static)
+        if isinstance(method, (PRKMK, Adjoint)) and _undo_each_other(method, undo):
+            # A PRKMK step and its `Adjoint` at −h solve the same stage
+            # equations, one for the step's end, the other for its start:
+            # the undoing step's stage slopes are the step's own (to the
+            # stage solve), evaluated once there instead of iterated to.
+            return method.step_at_stages(f, t_start, y, dt, a, jax.lax.stop_gradient(undone.carried[1])).y
+        # Other methods start from the field at the step's start. The
+        # gradient does not depend on where the iteration starts.
+        start = jax.lax.stop_gradient(method.initial_carried(f, t_start, y, a))
         return method.carried_step(f, t_start, y, dt, a, start).y
 
     _, vjp = eqx.filter_vjp(forward, undone.y, params_dynamic)
     cotangent_prev, params_step = vjp(cotangent)
     return undone.y, cotangent_prev, params_step, undone.carried, first_failure(result, undone.result)
-
-
-def _stages_of_undone_step(method, undo, vector_field, t_start, undone, args):
-    """What starts the stage iteration of the step run again for its VJP.
-
-    A PRKMK step and its `Adjoint` at −h solve the same stage equations,
-    one for the step's end, the other for its start: the undoing step's
-    stage slopes are the step's own (to the stage solve), and the step's
-    iteration started from them stops after an iteration or two. Other
-    methods start from the field at the step's start (`initial_carried`).
-    The gradient does not depend on where the iteration starts."""
-    carried = jax.lax.stop_gradient(method.initial_carried(vector_field, t_start, undone.y, args))
-    if _undo_each_other(method, undo):
-        return carried[0], jax.lax.stop_gradient(undone.carried[1])
-    return carried
 
 
 def _undo_each_other(method, undo) -> bool:

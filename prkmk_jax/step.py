@@ -210,6 +210,21 @@ class PRKMK(AbstractMethod):
         y_next, increment, result, iterations, stages = self._solve_step(vector_field, t, y, dt, args, field_now, guesses)
         return Step(y_next, increment, result, iterations, (field_now, stages))
 
+    def step_at_stages(self, vector_field: VectorField, t: Time, y: BundleElement, dt: Time, args: PyTree, stages) -> Step:
+        """The step from (t, y) whose stage slopes ((K₁, L₁), …, (K_s, L_s))
+        are known to solve its stage equations (to round-off; say, from the
+        `Adjoint` step at −h that undid it, which solves the same equations):
+        each implicit block is evaluated once at them instead of iterated,
+        and differentiated as a solved block is (the implicit function
+        theorem). With a `root_finder` the blocks are solved from these
+        slopes as `carried_step` solves them. `ReversibleGradient` runs a
+        step again this way for its VJP."""
+        self.check_vector_field(vector_field, t, y, args)
+        _check_pairs("stages", stages, self.bundle.algebra_zeros(y), self.tableau.num_stages)
+        field_now = self.generator(vector_field, t, y, args)
+        y_next, increment, result, iterations, solved = self._solve_step(vector_field, t, y, dt, args, field_now, stages, True)
+        return Step(y_next, increment, result, iterations, (field_now, solved))
+
     def extrapolated_guesses(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree, carried):
         """(X(tₙ, yₙ), the stage guesses Kᵢ_prev + X(tₙ, yₙ) − X(tₙ₋₁, yₙ₋₁))
         from what the previous step carried (see `carried_step`)."""
@@ -227,6 +242,7 @@ class PRKMK(AbstractMethod):
         args: PyTree,
         field_at_start: AlgebraPair,
         stage_guesses: tuple[AlgebraPair, ...],
+        stages_solved: bool = False,
     ):
         """One step from (t, y) to t + dt. Returns (y_next, increment, result,
         iterations, stage slopes ((K₁, L₁), …, (K_s, L_s))).
@@ -234,7 +250,8 @@ class PRKMK(AbstractMethod):
         `field_at_start` is `generator(vector_field, t, y, args)`, used where
         the step needs the field at (t, y) (explicit stages with U = 0 at
         c = 0); `stage_guesses` are the implicit stages' starting values, one
-        (K_i, L_i) per stage."""
+        (K_i, L_i) per stage, or with `stages_solved` their solution
+        (`solve_implicit`)."""
         tab = self.tableau
         dtype = jnp.result_type(*jax.tree.leaves(y))
         dt = jnp.asarray(dt, dtype)
@@ -282,7 +299,7 @@ class PRKMK(AbstractMethod):
                 return tuple(pairs[i][c] for i, c in part.slopes)
 
             guess = tuple(jnp.asarray(stage_guesses[i][c], dtype) for i, c in part.slopes)
-            block, block_result, n = self.solve_implicit(block_slopes, guess, dtype)
+            block, block_result, n = self.solve_implicit(block_slopes, guess, dtype, guess_solves=stages_solved)
             result = first_failure(result, block_result)
             iterations = iterations + n
             for (i, c), value in zip(part.slopes, block):
@@ -362,10 +379,12 @@ class PRKMK(AbstractMethod):
 
         return stage_dependence(stage, lambda state: self.generator(vector_field, t, state, args), zeros, y)
 
-    def solve_implicit(self, block_slopes, guess, dtype):
+    def solve_implicit(self, block_slopes, guess, dtype, guess_solves: bool = False):
         """Solve block_slopes(K) = K for the slopes K of an implicit block
         from `guess`, with this method's root finder and tolerances; returns
-        (K, result, iterations)."""
+        (K, result, iterations). `guess_solves`: the guess is the solution
+        (to round-off), evaluated once by the default iteration
+        (`_fixed_point_iteration`); a root finder solves from it."""
         eps = float(jnp.finfo(dtype).eps)
         default_tol = max(1e-12, 50 * eps)
         rtol = default_tol if self.rtol is None else self.rtol
@@ -373,7 +392,14 @@ class PRKMK(AbstractMethod):
         root_finder = self.root_finder
         if root_finder is None:
             return _fixed_point_iteration(
-                block_slopes, guess, rtol, atol, self.max_iterations, dtype, until_round_off=self.iterate_until == "round-off"
+                block_slopes,
+                guess,
+                rtol,
+                atol,
+                self.max_iterations,
+                dtype,
+                until_round_off=self.iterate_until == "round-off",
+                guess_solves=guess_solves,
             )
         fn = lambda z, _: block_slopes(z)  # noqa: E731
         if isinstance(root_finder, optx.AbstractFixedPointSolver):
@@ -423,7 +449,7 @@ def static_combination(dt, coefficients, slopes, zero):
     return dt * acc
 
 
-def _fixed_point_iteration(fn, guess, rtol, atol, max_iterations, dtype, until_round_off=True):
+def _fixed_point_iteration(fn, guess, rtol, atol, max_iterations, dtype, until_round_off=True, guess_solves=False):
     """z ← fn(z) from `guess` until the scaled increment
     eₖ = max|zₖ₊₁ − zₖ|/(atol + rtol|zₖ₊₁|) is below 1 (the criterion of
     `optx.FixedPointIteration` with `optx.max_norm`) and, when
@@ -431,7 +457,9 @@ def _fixed_point_iteration(fn, guess, rtol, atol, max_iterations, dtype, until_r
     stopping rule of Hairer, McLachlan & Razakarivony, BIT 48, 2008, which
     leaves z where rounding alone moves it), and once more outside the
     loop. At most `max_iterations` times in the loop; a success when the
-    last eₖ < 1. Returns (z, result, iterations).
+    last eₖ < 1. Returns (z, result, iterations). With `guess_solves` the
+    guess is known to be the solution: z = fn(guess), one evaluation, a
+    success.
 
     A bare `lax.while_loop` carrying only the iterate, its error, the
     previous error and a counter: under `vmap` every carried value costs a
@@ -446,7 +474,8 @@ def _fixed_point_iteration(fn, guess, rtol, atol, max_iterations, dtype, until_r
     # integers alike) become explicit leaves of `closed_fn`, so the JVP rule can
     # differentiate with respect to them and no tracer is captured.
     closed_fn = eqx.filter_closure_convert(fn, guess)
-    settings = _IterationSettings(float(rtol), float(atol), int(max_iterations), jnp.dtype(dtype), bool(until_round_off))
+    flags = (bool(until_round_off), bool(guess_solves))
+    settings = _IterationSettings(float(rtol), float(atol), int(max_iterations), jnp.dtype(dtype), *flags)
     dynamic, static = eqx.partition(closed_fn, eqx.is_array)
     z, error, n = _solve_fixed_point(settings, static, guess, dynamic)
     result = RESULTS.where(error < 1, RESULTS.successful, RESULTS.nonlinear_max_steps_reached)  # pyright: ignore[reportArgumentType]  # an Enumeration member is typed as its Literal
@@ -461,6 +490,7 @@ class _IterationSettings(eqx.Module):
     max_iterations: int = eqx.field(static=True)
     dtype: Any = eqx.field(static=True)
     until_round_off: bool = eqx.field(static=True)
+    guess_solves: bool = eqx.field(static=True)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
@@ -486,6 +516,8 @@ def _solve_fixed_point(settings, static, guess, dynamic):
         new = closed_fn(z)
         return new, relative_change(new, z), error, n + 1
 
+    if settings.guess_solves:
+        return closed_fn(guess), jnp.zeros((), dtype), jnp.array(1, jnp.int32)
     # NaN never compares below 1, so a non-finite iterate ends the loop too.
     inf = jnp.asarray(jnp.inf, dtype)
     z, error, _, n = jax.lax.while_loop(keep_going, iterate, (guess, inf, inf, jnp.array(0, jnp.int32)))

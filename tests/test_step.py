@@ -3,12 +3,14 @@ classical PRK method on ℝⁿ×ℝⁿ, and the empirical order of every tableau
 every representation with both coordinate maps."""
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 
 import prkmk_jax as pk
-from helpers import INERTIA, empirical_order, initial_state, random_rotation, rigid_body_field
+from helpers import INERTIA, empirical_order, initial_state, max_leaf_difference, random_rotation, rigid_body_field
 from prkmk_jax.stage_plan import Implicit
 
 H = 0.1
@@ -210,6 +212,52 @@ def test_stage_guesses_change_the_iterations_not_the_step(tab):
     # and evaluates it once more after the loop (iterate_until="round-off").
     implicit_blocks = sum(isinstance(part, Implicit) for part in method.stage_plan(field, 0.0, y0, args))
     assert int(n_exact) == 2 * implicit_blocks and int(n_default) > 2 * implicit_blocks and int(n_far) > 2 * implicit_blocks
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(None), pk.stormer_verlet, form="body"),
+        lambda: pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), pk.lobatto_iiia_iiib4, form="body"),
+        lambda: pk.PRKMK(pk.Cartesian(pk.SO3), pk.Cayley(), pk.stormer_verlet, form="body"),
+        lambda: pk.Adjoint(pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), pk.lobatto_iiia_iiib4, form="body")),
+        lambda: pk.PRKMK(pk.Cotangent(pk.SO3), pk.Exp(), pk.stormer_verlet, form="body", root_finder=optx.Newton(1e-13, 1e-13)),
+    ],
+    ids=["SV-exact", "L4", "SV-cartesian-cayley", "adjoint-L4", "SV-newton"],
+)
+def test_step_at_solved_stages_is_the_step_and_its_derivative(make):
+    """From the slopes the step solved for, `step_at_stages` evaluates each
+    implicit block once and takes the same step; its derivative in the
+    state and the parameters (through the implicit function theorem at
+    those slopes) is the iterated step's."""
+    method = make()
+    bundle = method.bundle
+    field, y0, args = rigid_body_field(bundle, "body"), initial_state(bundle), jnp.asarray(INERTIA)
+    solved = method.step(field, 0.0, y0, H, args)
+    again = method.step_at_stages(field, 0.0, y0, H, args, solved.carried[1])
+    assert again.result == pk.RESULTS.successful
+    assert max_leaf_difference(again.y, solved.y) <= 1e-15
+    if isinstance(method, pk.Adjoint):
+        assert int(again.iterations) == 1  # one system for all stages, evaluated once
+    elif method.root_finder is None:
+        assert int(again.iterations) == sum(isinstance(part, Implicit) for part in method.stage_plan(field, 0.0, y0, args))
+
+    def end(step_of):
+        return lambda y, a: step_of(y, a).y
+
+    iterated = end(lambda y, a: method.step(field, 0.0, y, H, a))
+    at_stages = end(lambda y, a: method.step_at_stages(field, 0.0, y, H, a, jax.lax.stop_gradient(solved.carried[1])))
+    cotangent = jax.tree.map(lambda x: jnp.cos(jnp.arange(x.size, dtype=x.dtype).reshape(x.shape)), solved.y)
+    expected = eqx.filter_jit(lambda y, a: eqx.filter_vjp(iterated, y, a)[1](cotangent))(y0, args)
+    got = eqx.filter_jit(lambda y, a: eqx.filter_vjp(at_stages, y, a)[1](cotangent))(y0, args)
+    assert max_leaf_difference(got, expected) <= 1e-12 * max(float(jnp.max(jnp.abs(x))) for x in jax.tree.leaves(expected))
+
+
+def test_step_at_stages_needs_a_prkmk_method():
+    splitting = pk.scenes.FreeRigidBody().splitting()
+    y0 = initial_state(pk.Cotangent(pk.SO3))
+    with pytest.raises(TypeError, match="adjoint of a PRKMK method"):
+        pk.Adjoint(splitting).step_at_stages(splitting.scene, 0.0, y0, H, jnp.asarray(INERTIA), ())
 
 
 def test_integrate_extrapolated_guesses_save_iterations():
