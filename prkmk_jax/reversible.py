@@ -183,15 +183,18 @@ def _step_back(method, undo, params_dynamic, params_static, t_start, t_end, dt, 
             # equations, one for the step's end, the other for its start:
             # the undoing step's stage slopes are the step's own (to the
             # stage solve), evaluated once there instead of iterated to.
-            return method.step_at_stages(f, t_start, y, dt, a, jax.lax.stop_gradient(undone.carried[1])).y
-        # Other methods start from the field at the step's start. The
-        # gradient does not depend on where the iteration starts.
-        start = jax.lax.stop_gradient(method.initial_carried(f, t_start, y, a))
-        return method.carried_step(f, t_start, y, dt, a, start).y
+            again = method.step_at_stages(f, t_start, y, dt, a, jax.lax.stop_gradient(undone.carried[1]))
+        else:
+            # Other methods start from the field at the step's start. The
+            # gradient does not depend on where the iteration starts.
+            start = jax.lax.stop_gradient(method.initial_carried(f, t_start, y, a))
+            again = method.carried_step(f, t_start, y, dt, a, start)
+        return again.y, again.result
 
-    _, vjp = eqx.filter_vjp(forward, undone.y, params_dynamic)
+    _, vjp, again_result = eqx.filter_vjp(forward, undone.y, params_dynamic, has_aux=True)
     cotangent_prev, params_step = vjp(cotangent)
-    return undone.y, cotangent_prev, params_step, undone.carried, first_failure(result, undone.result)
+    result = first_failure(first_failure(result, undone.result), again_result)
+    return undone.y, cotangent_prev, params_step, undone.carried, result
 
 
 def _undo_each_other(method, undo) -> bool:

@@ -458,8 +458,8 @@ def _fixed_point_iteration(fn, guess, rtol, atol, max_iterations, dtype, until_r
     leaves z where rounding alone moves it), and once more outside the
     loop. At most `max_iterations` times in the loop; a success when the
     last eₖ < 1. Returns (z, result, iterations). With `guess_solves` the
-    guess is known to be the solution: z = fn(guess), one evaluation, a
-    success.
+    guess is taken as the solution: z = fn(guess), one evaluation, a
+    success where it moved the guess by less than the tolerance (e < 1).
 
     A bare `lax.while_loop` carrying only the iterate, its error, the
     previous error and a counter: under `vmap` every carried value costs a
@@ -517,7 +517,10 @@ def _solve_fixed_point(settings, static, guess, dynamic):
         return new, relative_change(new, z), error, n + 1
 
     if settings.guess_solves:
-        return closed_fn(guess), jnp.zeros((), dtype), jnp.array(1, jnp.int32)
+        # Checked, not trusted: a guess that fn moves by more than the
+        # tolerance is not a solution, and the result says so.
+        z = closed_fn(guess)
+        return z, relative_change(z, guess), jnp.array(1, jnp.int32)
     # NaN never compares below 1, so a non-finite iterate ends the loop too.
     inf = jnp.asarray(jnp.inf, dtype)
     z, error, _, n = jax.lax.while_loop(keep_going, iterate, (guess, inf, inf, jnp.array(0, jnp.int32)))

@@ -253,6 +253,21 @@ def test_step_at_solved_stages_is_the_step_and_its_derivative(make):
     assert max_leaf_difference(got, expected) <= 1e-12 * max(float(jnp.max(jnp.abs(x))) for x in jax.tree.leaves(expected))
 
 
+@pytest.mark.parametrize("adjoint", [False, True], ids=["PRKMK", "adjoint"])
+def test_step_at_stages_flags_slopes_that_do_not_solve(adjoint):
+    """Slopes off the solution by far more than the stage tolerance are
+    evaluated once, as asked, and the step's result says they were no
+    solution."""
+    bundle = pk.Cotangent(pk.SO3)
+    method = pk.PRKMK(bundle, pk.Exp(), pk.lobatto_iiia_iiib4, form="body")
+    method = pk.Adjoint(method) if adjoint else method
+    field, y0, args = rigid_body_field(bundle, "body"), initial_state(bundle), jnp.asarray(INERTIA)
+    stages = method.step(field, 0.0, y0, H, args).carried[1]
+    off = tuple((k_i + 1e-6, l_i) for k_i, l_i in stages)
+    assert method.step_at_stages(field, 0.0, y0, H, args, stages).result == pk.RESULTS.successful
+    assert method.step_at_stages(field, 0.0, y0, H, args, off).result == pk.RESULTS.nonlinear_max_steps_reached
+
+
 def test_step_at_stages_needs_a_prkmk_method():
     splitting = pk.scenes.FreeRigidBody().splitting()
     y0 = initial_state(pk.Cotangent(pk.SO3))
