@@ -12,8 +12,9 @@ the same final states (≤ 1e-11 in float64, 1e-4 in float32), and then timed
 in alternation. Columns: ns per trajectory-step of each, the median of the
 per-round ratios now/before, and the compile times.
 
-Methods: a PRKMK tableau with exp or Cayley coordinates, or the free
-body's exact-flow splitting ("splitting": Strang; "splitting kahan_li_8":
+Methods: a PRKMK tableau with exp or Cayley coordinates ("symmetrized
+lobatto_iiia_iiib4": its `Symmetrized`), or the free body's exact-flow
+splitting ("splitting": Strang; "splitting kahan_li_8":
 composed to order 8). Paths: `integrate` (lax.scan) vmapped over the batch,
 `in_state` (the batch as leading axes of the state, one run),
 `diffeqsolve(PRKMKSolver)`, and `value_and_grad` of a loss on the final
@@ -60,6 +61,8 @@ def import_revision(rev: str):
 
 def _method(lib, tableau, coordinates):
     coords = lib.Exp() if coordinates == "exp" else lib.Cayley()
+    if tableau.startswith("symmetrized "):
+        return lib.Symmetrized(_method(lib, tableau.removeprefix("symmetrized "), coordinates))
     if tableau.startswith("splitting"):
         composition = tableau.removeprefix("splitting").strip()
         return lib.scenes.FreeRigidBody().splitting(getattr(lib, composition) if composition else None, coords)
@@ -177,6 +180,8 @@ def main(argv=None):
             for tab, coords in (("stormer_verlet", "exp"), ("stormer_verlet", "cayley"), ("lobatto_iiia_iiib4", "exp"))
             for path in ("integrate", "value_and_grad", "reversible_grad", "reversible_adjoint")
         ]
+        symmetrized = "symmetrized lobatto_iiia_iiib4"
+        cases += [(symmetrized, "exp", path, 64, jnp.float64, "free body") for path in ("integrate", "reversible_grad")]
         cases += [
             (method, coords, path, 64, jnp.float64, "free body")
             for method, coords in (("splitting", "exp"), ("splitting", "cayley"), ("splitting kahan_li_6", "exp"))
