@@ -67,10 +67,9 @@ def _pair_tables(num_rows: int, pairs: tuple[tuple[int, int], ...]):
 
 def rotated_array(z: Packed, pairs: tuple[tuple[int, int], ...], sine: Array, cosine: Array) -> Packed:
     """`rotated_rows` as whole-array arithmetic: z·c + (±s)·z[partner] on the
-    moved rows, z on the others. The same values; XLA computes it as one
-    array, where the rows written out one by one become one small
-    computation per row when several consumers read them (the reverse
-    step's)."""
+    moved rows, z on the others. The same values, which XLA computes as one
+    array. Rows written out one by one become one small computation per row
+    where several consumers read them, as in `Splitting.reverse_step`."""
     partner, sign, moved = _pair_tables(z.shape[0], pairs)
     shape = (z.shape[0],) + (1,) * (z.ndim - 1)
     scale = jnp.where(moved.reshape(shape), cosine, jnp.ones_like(cosine))

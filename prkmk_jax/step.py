@@ -474,8 +474,9 @@ def _fixed_point_iteration(fn, guess, rtol, atol, max_iterations, dtype, until_r
     # integers alike) become explicit leaves of `closed_fn`, so the JVP rule can
     # differentiate with respect to them and no tracer is captured.
     closed_fn = eqx.filter_closure_convert(fn, guess)
-    flags = (bool(until_round_off), bool(guess_solves))
-    settings = _IterationSettings(float(rtol), float(atol), int(max_iterations), jnp.dtype(dtype), *flags)
+    settings = _IterationSettings(
+        float(rtol), float(atol), int(max_iterations), jnp.dtype(dtype), bool(until_round_off), bool(guess_solves)
+    )
     dynamic, static = eqx.partition(closed_fn, eqx.is_array)
     z, error, n = _solve_fixed_point(settings, static, guess, dynamic)
     result = RESULTS.where(error < 1, RESULTS.successful, RESULTS.nonlinear_max_steps_reached)  # pyright: ignore[reportArgumentType]  # an Enumeration member is typed as its Literal
