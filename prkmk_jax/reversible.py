@@ -34,6 +34,8 @@ from .step import PRKMK
 class ReversibleGradient(eqx.Module):
     """Gradients of `integrate` by reconstructing the states backwards
     (module docstring), for `integrate(..., gradient=ReversibleGradient())`.
+    Reverse mode only (the run is a `custom_vjp`): forward mode (`jax.jvp`,
+    `jax.jacfwd`) raises JAX's error there and takes `gradient=None`.
 
     - `checkpoint_every`: reconstruct at most this many steps from one kept
       state. The forward pass keeps the saved states and, between two of
