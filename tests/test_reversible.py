@@ -189,6 +189,11 @@ def test_refusals():
         pk.ReversibleGradient(max_reconstruction_error=-1.0)
     with pytest.raises(TypeError, match="ReversibleGradient"):
         _gradients(FREE.method(pk.stormer_verlet), FREE, INERTIA, gradient="reversible")
+    # Reverse mode only: forward mode raises (and works with gradient=None).
+    loss = _loss(FREE.splitting(), FREE, 10, 10, pk.ReversibleGradient())
+    with pytest.raises(TypeError, match="forward-mode"):
+        jax.jvp(lambda a: loss(Y0, a), (INERTIA,), (jnp.ones(3),))
+    assert np.isfinite(jax.jvp(lambda a: _loss(FREE.splitting(), FREE, 10, 10, None)(Y0, a), (INERTIA,), (jnp.ones(3),))[1])
 
 
 # --- diffeqsolve: ReversibleAdjoint ------------------------------------------------
