@@ -55,14 +55,16 @@ def rotated_rows(z: Packed, pairs: tuple[tuple[int, int], ...], sine: Array, cos
     return jnp.stack(rows)
 
 
-def _pair_tables(num_rows: int, pairs: tuple[tuple[int, int], ...]):
-    """For rows turned in pairs: each row's partner (itself if unmoved), the
-    sign its partner enters with (+1 for the first of a pair, −1 for the
-    second, 0 unmoved) and whether it moves."""
-    partner, sign = np.arange(num_rows), np.zeros(num_rows)
+def _pair_tables(z: Packed, pairs: tuple[tuple[int, int], ...]):
+    """For the rows of z turned in pairs: each row's partner (itself if
+    unmoved), the sign its partner enters with (+1 for the first of a pair,
+    −1 for the second, 0 unmoved) and whether it moves, the last two shaped
+    to broadcast against z."""
+    partner, sign = np.arange(z.shape[0]), np.zeros(z.shape[0])
     for j, k in pairs:
         partner[j], partner[k], sign[j], sign[k] = k, j, 1.0, -1.0
-    return partner, sign, sign != 0
+    shape = (z.shape[0],) + (1,) * (z.ndim - 1)
+    return partner, sign.reshape(shape), (sign != 0).reshape(shape)
 
 
 def rotated_array(z: Packed, pairs: tuple[tuple[int, int], ...], sine: Array, cosine: Array) -> Packed:
@@ -70,10 +72,9 @@ def rotated_array(z: Packed, pairs: tuple[tuple[int, int], ...], sine: Array, co
     moved rows, z on the others. The same values, which XLA computes as one
     array. Rows written out one by one become one small computation per row
     where several consumers read them, as in `Splitting.reverse_step`."""
-    partner, sign, moved = _pair_tables(z.shape[0], pairs)
-    shape = (z.shape[0],) + (1,) * (z.ndim - 1)
-    scale = jnp.where(moved.reshape(shape), cosine, jnp.ones_like(cosine))
-    return scale * z + (sign.reshape(shape) * sine) * jnp.take(z, partner, axis=0)
+    partner, sign, moved = _pair_tables(z, pairs)
+    scale = jnp.where(moved, cosine, jnp.ones_like(cosine))
+    return scale * z + (sign * sine) * jnp.take(z, partner, axis=0)
 
 
 class AbstractExactFlow(eqx.Module):
@@ -162,10 +163,9 @@ class AxisRotation(AbstractExactFlow):
         # (a, b) ↦ (c a + s b, c b − s a) is a rotation: its transpose is the
         # inverse, and its derivatives in s and c read the rows it turns.
         sine, cosine = coefficients
-        partner, sign, moved = _pair_tables(z.shape[0], self.pairs)
-        shape = (z.shape[0],) + (1,) * (z.ndim - 1)
-        cotangent_sine = jnp.sum(sign.reshape(shape) * cotangent * jnp.take(z, partner, axis=0), axis=0)
-        cotangent_cosine = jnp.sum(moved.reshape(shape) * cotangent * z, axis=0)
+        partner, sign, moved = _pair_tables(z, self.pairs)
+        cotangent_sine = jnp.sum(sign * cotangent * jnp.take(z, partner, axis=0), axis=0)
+        cotangent_cosine = jnp.sum(moved * cotangent * z, axis=0)
         return rotated_array(cotangent, self.pairs, -sine, cosine), (cotangent_sine, cotangent_cosine)
 
 
