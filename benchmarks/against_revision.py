@@ -227,6 +227,14 @@ def main(argv=None):
             for tab, coords in (("lobatto_iiia_iiib6", "exp"), ("lobatto_iiia_iiib6", "cayley"), ("stormer_verlet", "cayley"))
             for batch in (1, 1024)
         ]
+        # Methods made of steps and the splittings, whose steps the drivers
+        # also sum (`compensated`).
+        cases += [("symmetrized lobatto_iiia_iiib4", "exp", "integrate", 64, jnp.float64, "free body")]
+        cases += [
+            (method, "exp", path, batch, jnp.float64, "free body")
+            for method in ("splitting", "splitting kahan_li_8")
+            for path, batch in (("integrate", 64), ("in_state", 1024))
+        ]
         rounds, work = args.rounds, 200_000
     cases = [case for case in cases if not args.scene or case[-1] == args.scene]
     print(f"now: working tree; before: {args.rev} ({sha})")

@@ -104,6 +104,7 @@ from .made_of_steps import (
 from .method import RESULTS as RESULTS
 from .method import AbstractMethod as AbstractMethod
 from .method import Step as Step
+from .method import compensated as compensated
 from .reversible import ReversibleAdjoint as ReversibleAdjoint
 from .reversible import ReversibleGradient as ReversibleGradient
 from .reversible import undoing_method as undoing_method

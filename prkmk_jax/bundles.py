@@ -60,6 +60,11 @@ def _multiply_in_form(bundle, increment, y, form):
     return bundle.multiply(y, increment) if form == "body" else bundle.multiply(increment, y)
 
 
+def _side(form) -> Literal["right", "left"]:
+    """Where the increment multiplies the state: on the right in body form."""
+    return "right" if form == "body" else "left"
+
+
 def _is_group_class(base) -> bool:
     return isinstance(base, type) and issubclass(base, AbstractLieGroup)
 
@@ -172,6 +177,16 @@ class AbstractBundle(eqx.Module):
         body's step on T*SO(3) quicker (`benchmarks/against_revision.py`
         measures it)."""
 
+    @abc.abstractmethod
+    def lifted_change(
+        self, coordinates: "AbstractCoordinates", U: Increment, y: BundleElement, form: Literal["space", "body"]
+    ) -> BundleElement:
+        """`lifted_multiply` minus y, computed with y kept out of every sum:
+        a container shaped as y holding the change of each of its arrays
+        (not a bundle element), rounded relative to the change rather than
+        to y. A step adds it to y and carries the sum's rounding on
+        (compensated summation, `AbstractMethod.advance`)."""
+
 
 class DirectProduct(AbstractBundle):
     """TG ≅ G × g, the direct product (paper §2.1, Table 2.1)."""
@@ -200,6 +215,10 @@ class DirectProduct(AbstractBundle):
     def lifted_multiply(self, coordinates, U, y, form):
         return _multiply_in_form(self, self.lifted_map(coordinates, self.zero_filled(U, y)), y, form)
 
+    def lifted_change(self, coordinates, U, y, form):
+        u, v = self.zero_filled(U, y)
+        return BundleElement(y.base.product_change(coordinates.group_map_change(self.base, u), _side(form)), v)
+
 
 class Cartesian(AbstractBundle):
     """TG ≅ G × G, the Cartesian product (paper §2.3, Table 2.3)."""
@@ -227,6 +246,14 @@ class Cartesian(AbstractBundle):
 
     def lifted_multiply(self, coordinates, U, y, form):
         return _multiply_in_form(self, self.lifted_map(coordinates, self.zero_filled(U, y)), y, form)
+
+    def lifted_change(self, coordinates, U, y, form):
+        u, v = self.zero_filled(U, y)
+        side = _side(form)
+        return BundleElement(
+            y.base.product_change(coordinates.group_map_change(self.base, u), side),
+            y.fiber.product_change(coordinates.group_map_change(self.base, v), side),
+        )
 
 
 class AbstractSemidirect(AbstractBundle):
@@ -280,6 +307,25 @@ class AbstractSemidirect(AbstractBundle):
         fiber_part = None if v is None else coordinates.fiber_map(base, u, v, self._sign())
         g = coordinates.group_map(base, u)
         return self._multiply_increment(y, g, fiber_part, lambda x, sign: coordinates.group_adjoint(base, u, x, sign), form)
+
+    def lifted_change(self, coordinates, U, y, form):
+        # The fiber of `_multiply_increment` minus y's: where the action
+        # moves y's fiber, its change Ad_{φ(u)^{±1}} μ − μ; where it does
+        # not, the added part alone.
+        u, v = U
+        base = self.base
+        w = None if v is None else coordinates.fiber_map(base, u, v, self._sign())
+        base_change = y.base.product_change(coordinates.group_map_change(base, u), _side(form))
+        left = self.trivialization == "left"
+        if form == "body":  # y·(g, w): (a g, Ad_{g⁻¹} μ + w) left, (a g, μ + Ad_a w) right
+            moved = coordinates.group_adjoint_change(base, u, y.fiber, -1.0) if left else None
+            added = None if w is None else (w if left else y.base.adjoint(w))
+        else:  # (g, w)·y: (g a, Ad_{a⁻¹} w + μ) left, (g a, w + Ad_g μ) right
+            moved = None if left else coordinates.group_adjoint_change(base, u, y.fiber, 1.0)
+            added = None if w is None else (y.base.inverse().adjoint(w) if left else w)
+        parts = [part for part in (moved, added) if part is not None]
+        fiber_change = sum(parts[1:], parts[0]) if parts else jnp.zeros_like(y.fiber)
+        return BundleElement(base_change, fiber_change)
 
     def _multiply_increment(self, y, g, w, act, form):
         """The product (multiply) of y with the increment (g, w), where g is

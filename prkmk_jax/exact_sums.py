@@ -69,7 +69,7 @@ def rounded_once_combination(dt, coefficients, slopes, zero):
         small_terms.append(weight_low_half * slope_low + weight_low * slope)
     total, error = exact_terms[0], None
     for term in exact_terms[1:]:
-        total, sum_error = _two_sum(total, term)
+        total, sum_error = two_sum(total, term)
         error = sum_error if error is None else error + sum_error
     tail = functools.reduce(jnp.add, small_terms if error is None else [error, *small_terms])
     # The two parts added in one contraction: XLA materialises its result once,
@@ -78,9 +78,10 @@ def rounded_once_combination(dt, coefficients, slopes, zero):
     return jnp.tensordot(jnp.ones(2, dtype), jnp.stack([total, tail]), axes=1)
 
 
-def _two_sum(a, b):
+def two_sum(a, b):
     """(a + b rounded, its rounding error), whose sum is a + b exactly
-    (Knuth's error-free sum: additions only)."""
+    whatever their magnitudes (Knuth's error-free sum: additions only,
+    which XLA neither reassociates nor contracts)."""
     total = a + b
     b_virtual = total - a
     return total, (a - (total - b_virtual)) + (b - b_virtual)
@@ -101,5 +102,5 @@ def _exact_product(a, b):
     """a·b as (high, low), high + low exact but for low's own rounding."""
     a_high, a_low = _split(a)
     b_high, b_low = _split(b)
-    total, error = _two_sum(a_high * b_high, a_high * b_low + a_low * b_high)
+    total, error = two_sum(a_high * b_high, a_high * b_low + a_low * b_high)
     return total, error + a_low * b_low

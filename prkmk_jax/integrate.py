@@ -8,7 +8,7 @@ from jax.core import Tracer
 from jaxtyping import Array, Float, Int, PyTree, Real
 
 from .bundles import BundleElement
-from .method import RESULTS, AbstractMethod, Time, VectorField, checked_field_args, counted_start, counted_step
+from .method import RESULTS, AbstractMethod, Time, VectorField, checked_field_args, counted_start, counted_step, no_compensation
 from .reversible import ReversibleGradient, reversible_run
 from .step import STAGE_SLOPES_NAME
 
@@ -28,6 +28,10 @@ class Continuation(eqx.Module):
     carried: PyTree
     """What the next step starts from (`Step.carried`: the field at the last
     step's start and its stage slopes, the next step's starting guesses)."""
+    compensation: BundleElement
+    """What the run's updates lost to rounding so far, below the last bit of
+    `y` (compensated summation, `method.compensated`): y + compensation is
+    the run's state to the rounding of each step's change."""
 
 
 class Trajectory(eqx.Module):
@@ -107,7 +111,7 @@ def integrate(
     _check_method(method)
     y0, t0, dt, args = _checked_start(method, vector_field, y0, t0, dt, args)
     carried = method.initial_carried(vector_field, t0, y0, args)
-    start = Continuation(y0, t0, dt, jnp.array(0, jnp.int32), carried)
+    start = Continuation(y0, t0, dt, jnp.array(0, jnp.int32), carried, no_compensation(y0))
     return _run(method, vector_field, start, num_steps, args, save_every, throw, gradient)
 
 
@@ -192,10 +196,12 @@ def _run(method, vector_field, start: Continuation, num_steps, args, save_every,
     if gradient is not None:
         if not isinstance(gradient, ReversibleGradient):
             raise TypeError(f"gradient must be None (through the stored steps) or ReversibleGradient(...), got {gradient!r}.")
-        saved, y_last, result, total, worst, carried = reversible_run(
-            method, vector_field, start.y, start.carried, t0, dt, start.steps_done, args, num_steps // save_every, save_every, gradient
+        num_saves = num_steps // save_every
+        y, compensation, carried = start.y, start.compensation, start.carried
+        saved, last, result, total, worst, carried = reversible_run(
+            method, vector_field, y, compensation, carried, t0, dt, start.steps_done, args, num_saves, save_every, gradient
         )
-        return _trajectory(start, saved, y_last, result, total, worst, carried, num_steps // save_every, save_every, throw)
+        return _trajectory(start, saved, last, result, total, worst, carried, num_saves, save_every, throw)
 
     # Under reverse mode a scanned step would store every intermediate of
     # every step (hundreds of per-trajectory scalars); rematerialised, it
@@ -209,18 +215,20 @@ def _run(method, vector_field, start: Continuation, num_steps, args, save_every,
         carry, _ = jax.lax.scan(step_fn, carry, first + jnp.arange(save_every, dtype=jnp.int32))
         return carry, carry[0]
 
-    init = counted_start(start.y, start.carried)
+    init = counted_start(start.y, start.carried, start.compensation)
     num_saves = num_steps // save_every
     save_steps = start.steps_done + save_every * jnp.arange(num_saves + 1, dtype=jnp.int32)
-    (y_last, result, total, worst, carried), saved = jax.lax.scan(one_save, init, save_steps[:-1])
-    return _trajectory(start, saved, y_last, result, total, worst, carried, num_saves, save_every, throw)
+    (y_last, compensation, result, total, worst, carried), saved = jax.lax.scan(one_save, init, save_steps[:-1])
+    return _trajectory(start, saved, (y_last, compensation), result, total, worst, carried, num_saves, save_every, throw)
 
 
-def _trajectory(start: Continuation, saved, y_last, result, total, worst, carried, num_saves, save_every, throw) -> Trajectory:
+def _trajectory(start: Continuation, saved, last, result, total, worst, carried, num_saves, save_every, throw) -> Trajectory:
+    """The run's `Trajectory`; `last` is (the last state, its compensation)."""
+    y_last, compensation = last
     save_steps = start.steps_done + save_every * jnp.arange(num_saves + 1, dtype=jnp.int32)
     ys = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), start.y, saved)
     ts = start.t0 + save_steps * start.dt
     if throw:
         ys = result.error_if(ys, result != RESULTS.successful)
-    continuation = Continuation(y_last, start.t0, start.dt, save_steps[-1], carried)
+    continuation = Continuation(y_last, start.t0, start.dt, save_steps[-1], carried, compensation)
     return Trajectory(ts, ys, result, {"num_iterations": total, "max_iterations_per_step": worst}, continuation)

@@ -25,7 +25,17 @@ from jaxtyping import Array, PyTree
 from .bundles import BundleElement
 from .compositions import CompositionCoefficients
 from .exact_sums import rounded_once_combination
-from .method import RESULTS, AbstractMethod, Step, VectorField, first_failure, flag_nonfinite, largest_entry_difference
+from .method import (
+    RESULTS,
+    AbstractMethod,
+    Step,
+    VectorField,
+    compensated,
+    first_failure,
+    flag_nonfinite,
+    largest_entry_difference,
+    no_compensation,
+)
 from .splitting import Splitting
 from .step import PRKMK, static_combination
 
@@ -158,9 +168,9 @@ def _adjoint_step(method: PRKMK, vector_field, t, y, dt, args, field_now, guesse
         # the formula of which they are a fixed point (`exact_sums`).
         u_rounded_once = rounded_once_combination(dt, tab.b_first, first, zeros[0])
         u_next = zeros[0] if u_rounded_once is None else u_rounded_once
-    y_next = method.advance((u_next, v_next), y)
+    y_next, rounding = method.advance((u_next, v_next), y)
     increment_made = (u_next, zeros[1] if v_next is None else v_next)
-    return Step(y_next, increment_made, flag_nonfinite(result, y_next), iterations, (field_now, stages))
+    return Step(y_next, increment_made, flag_nonfinite(result, y_next), iterations, rounding, (field_now, stages))
 
 
 def _reaches_start(tab, i: int, fiber_free: bool) -> bool:
@@ -210,10 +220,14 @@ class Symmetrized(AbstractMadeOfSteps):
         half = jnp.asarray(dt, dtype) / 2
         t = jnp.asarray(t, dtype)
         first = self.method.step(vector_field, t, y, half, args, carried[0])
-        second = self.adjoint.step(vector_field, t + half, first.y, half, args, carried[1])
+        # The half steps' roundings summed as the drivers sum steps'
+        # (`compensated`): the step hands on what both lost.
+        y_half, lost = compensated(first.y, first.rounding, no_compensation(y))
+        second = self.adjoint.step(vector_field, t + half, y_half, half, args, carried[1])
+        y_next, lost = compensated(second.y, second.rounding, lost)
         result = first_failure(first.result, second.result)
-        increment = self.increment_between(y, second.y)
-        return Step(second.y, increment, result, first.iterations + second.iterations, (first.carried, second.carried))
+        increment = self.increment_between(y, y_next)
+        return Step(y_next, increment, result, first.iterations + second.iterations, lost, (first.carried, second.carried))
 
 
 class Composition(AbstractMadeOfSteps):
@@ -283,14 +297,16 @@ class Composition(AbstractMadeOfSteps):
         starts = jnp.concatenate([jnp.zeros(1, dtype), jnp.cumsum(fractions)[:-1]])
 
         def substep(state, inputs):
-            y_k, result, iterations = state
+            y_k, lost, result, iterations = state
             fraction, start, carried_k = inputs
             sub = self.method.step(vector_field, t + start * dt, y_k, fraction * dt, args, carried_k)
-            return (sub.y, first_failure(result, sub.result), iterations + sub.iterations), sub.carried
+            # The sub-steps' roundings summed as the drivers sum steps' (`compensated`).
+            y_k, lost = compensated(sub.y, sub.rounding, lost)
+            return (y_k, lost, first_failure(result, sub.result), iterations + sub.iterations), sub.carried
 
-        init = (y, RESULTS.successful, jnp.array(0, jnp.int32))
-        (y_next, result, iterations), carried = jax.lax.scan(substep, init, (fractions, starts, carried))
-        return Step(y_next, self.increment_between(y, y_next), result, iterations, carried)
+        init = (y, no_compensation(y), RESULTS.successful, jnp.array(0, jnp.int32))
+        (y_next, lost, result, iterations), carried = jax.lax.scan(substep, init, (fractions, starts, carried))
+        return Step(y_next, self.increment_between(y, y_next), result, iterations, lost, carried)
 
 
 def symmetry_defect(

@@ -22,6 +22,7 @@ from jaxtyping import Array, Int, PyTree, Real
 
 from .bundles import AbstractBundle, AlgebraPair, BundleElement, Increment
 from .coordinates import AbstractCoordinates
+from .exact_sums import two_sum
 
 RESULTS = diffrax.RESULTS
 LOW_PRECISION_EPS = 1e-10
@@ -78,23 +79,58 @@ def checked_field_args(vector_field: VectorField, args: PyTree) -> PyTree:
 
 def counted_step(method: "AbstractMethod", vector_field: VectorField, t0, dt, args: PyTree):
     """The body of a fixed-step `lax.scan` over step numbers n: step n runs
-    from t0 + n·dt. The carry is `counted_start`'s: the state, the first
-    failure, the total of the implicit iterations, the most in one step, and
-    what the step carries to the next."""
+    from t0 + n·dt. The carry is `counted_start`'s: the state, its
+    compensation (`compensated`), the first failure, the total of the
+    implicit iterations, the most in one step, and what the step carries to
+    the next."""
 
     def one_step(carry, n):
-        y, result, total, worst, carried = carry
+        y, compensation, result, total, worst, carried = carry
         step = method.carried_step(vector_field, t0 + n * dt, y, dt, args, carried)
+        y_next, compensation = compensated(step.y, step.rounding, compensation)
         result = first_failure(result, step.result)
-        return (step.y, result, total + step.iterations, jnp.maximum(worst, step.iterations), step.carried), None
+        return (y_next, compensation, result, total + step.iterations, jnp.maximum(worst, step.iterations), step.carried), None
 
     return one_step
 
 
-def counted_start(y: BundleElement, carried: Any):
-    """The carry of `counted_step` before the first step."""
+def counted_start(y: BundleElement, carried: Any, compensation: BundleElement | None = None):
+    """The carry of `counted_step` before the first step (no compensation
+    yet, unless a continued run hands on its own)."""
     zero = jnp.array(0, jnp.int32)
-    return y, RESULTS.successful, zero, zero, carried
+    if compensation is None:
+        compensation = no_compensation(y)
+    return y, compensation, RESULTS.successful, zero, zero, carried
+
+
+def no_compensation(y: BundleElement) -> BundleElement:
+    """The compensation of a state whose arrays are exact as they are: zeros."""
+    return jax.tree.map(jnp.zeros_like, y)
+
+
+def compensated(y: BundleElement, rounding: BundleElement, compensation: BundleElement) -> tuple[BundleElement, BundleElement]:
+    """One update of a run's compensated summation (Kahan): the state `y` a
+    step returned, plus what its update lost to rounding (`Step.rounding`)
+    and what the run's earlier updates lost (`compensation`), summed so that
+    the part below y's last bit is carried on: (y', compensation') with
+    y + rounding + compensation = y' + compensation' to within the rounding
+    of the small sum. Then the roundings of the updates do not accumulate:
+    the state's error grows with that of each step's change, far smaller
+    than the state (Hairer, McLachlan & Razakarivony, BIT 48, 2008).
+
+    The drivers call it after every step; a loop of `AbstractMethod.step`
+    written by hand does the same, starting from zeros shaped as the state
+    (`lost = jax.tree.map(jnp.zeros_like, y0)`):
+
+        y, lost = compensated(step.y, step.rounding, lost)
+
+    The compensation is a correction below the state's rounding, zero in
+    exact arithmetic: it is not differentiated."""
+    small = jax.lax.stop_gradient(jax.tree.map(jnp.add, rounding, compensation))
+    summed = jax.tree.map(two_sum, y, small)
+    y_next = jax.tree.map(lambda _, pair: pair[0], y, summed)
+    lost = jax.tree.map(lambda _, pair: pair[1], y, summed)
+    return y_next, jax.lax.stop_gradient(lost)
 
 
 def largest_entry_difference(a: PyTree, b: PyTree) -> Array:
@@ -131,6 +167,11 @@ class Step(eqx.Module):
     not converge, a non-finite state)."""
     iterations: Iterations
     """The implicit iterations the step took."""
+    rounding: BundleElement
+    """What the update lost to rounding, array by array: y_start + change =
+    y + rounding exactly, for the change the step computed (`advance`).
+    The drivers carry it on (`compensated`); zeros where the step has no
+    such sum (a `Splitting`'s rotations, low precision)."""
     carried: Any
     """What the next step starts from: the field at this step's start and,
     for implicit stages, this step's stage slopes, the next step's starting
@@ -198,17 +239,30 @@ class AbstractMethod(eqx.Module):
         (`AbstractBundle.lifted_multiply`)."""
         return self.coordinates.apply(self.bundle, U, y, self.form)
 
-    def advance(self, U: Increment, y: BundleElement) -> BundleElement:
-        """The step's new state: `apply_increment(U, y)`, and in low precision
-        (machine epsilon above `LOW_PRECISION_EPS`) corrected back onto the
-        group where it has drifted off it by more than a few ulps
-        (`AbstractBundle.renormalized`): there the rounding of f(U) and of
-        the product is systematic for steady motions and would pull the state
-        off the group a little every step."""
-        y_next = self.apply_increment(U, y)
-        if jnp.finfo(jnp.result_type(*jax.tree.leaves(y_next))).eps > LOW_PRECISION_EPS:
-            y_next = self.bundle.renormalized(y_next)
-        return y_next
+    def advance(self, U: Increment, y: BundleElement) -> tuple[BundleElement, BundleElement]:
+        """The step's new state `apply_increment(U, y)` and what its sum lost
+        to rounding (`Step.rounding`).
+
+        The state is summed as y + (f(U)⊙y − y), the change computed with y
+        kept out of it (`AbstractCoordinates.apply_change`), so it is rounded
+        relative to the change; the sum's rounding is returned exactly
+        (`two_sum`), for the driver to carry on (`compensated`).
+
+        In low precision (machine epsilon above `LOW_PRECISION_EPS`) the
+        product is taken as it is and corrected back onto the group where
+        it has drifted off by more than a few ulps
+        (`AbstractBundle.renormalized`): there the rounding of f(U) and of the
+        product is systematic for steady motions and would pull the state off
+        the group a little every step. The correction has no exact sum to
+        compensate: the rounding is returned as zeros."""
+        if jnp.finfo(jnp.result_type(*jax.tree.leaves(y))).eps > LOW_PRECISION_EPS:
+            y_next = self.bundle.renormalized(self.apply_increment(U, y))
+            return y_next, no_compensation(y_next)
+        change = self.coordinates.apply_change(self.bundle, U, y, self.form)
+        summed = jax.tree.map(two_sum, y, change)
+        y_next = jax.tree.map(lambda _, pair: pair[0], y, summed)
+        rounding = jax.tree.map(lambda _, pair: pair[1], y, summed)
+        return y_next, jax.lax.stop_gradient(rounding)
 
     def increment_between(self, y: BundleElement, y_next: BundleElement) -> AlgebraPair:
         """The U near 0 with `apply_increment(U, y) = y_next`: f⁻¹(y_next·y⁻¹)

@@ -94,10 +94,13 @@ def _chunk_steps(gradient: ReversibleGradient, save_every: int) -> int:
     return max(k for k in range(1, min(gradient.checkpoint_every, save_every) + 1) if save_every % k == 0)
 
 
-def reversible_run(method, vector_field, y0, carried0, t0, dt, steps_done, args, num_saves, save_every, gradient):
-    """The forward pass of `integrate` under `ReversibleGradient`:
-    (saved states, last state, result, iteration total and maximum, carried),
-    differentiable in (y0, args, vector_field) by reconstruction."""
+def reversible_run(method, vector_field, y0, compensation0, carried0, t0, dt, steps_done, args, num_saves, save_every, gradient):
+    """The forward pass of `integrate` under `ReversibleGradient`: (saved
+    states, (last state, its compensation), result, iteration total and
+    maximum, carried), differentiable in (y0, args, vector_field) by
+    reconstruction. The steps are summed with compensation as `integrate`
+    sums them; the reconstruction undoes the steps from the last state alone
+    (the compensation is below its rounding)."""
     chunk = _chunk_steps(gradient, save_every)
     chunks_per_save = save_every // chunk
     undo = undoing_method(method)
@@ -108,20 +111,23 @@ def reversible_run(method, vector_field, y0, carried0, t0, dt, steps_done, args,
         vector_field = eqx.filter_closure_convert(vector_field, t0, y0, args)
     # The carried stage slopes only start the first step's stage iteration:
     # its solution, and so the gradient, does not depend on them.
-    carried0 = jax.lax.stop_gradient(carried0)
+    start = jax.lax.stop_gradient((carried0, compensation0))
     tolerance = _tolerance(gradient.max_reconstruction_error, y0)
     saved, y_last, *counts = _run_and_undo(
-        (y0, args, vector_field), method, undo, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk, tolerance
+        (y0, args, vector_field), method, undo, start, t0, dt, steps_done, num_saves, chunks_per_save, chunk, tolerance
     )
-    # The result, the iteration counts and the carried slopes are not
-    # differentiated (the slopes only start the next run's stages).
-    result, total, worst, carried = jax.lax.stop_gradient(counts)
-    return saved, y_last, result, total, worst, carried
+    # The result, the iteration counts, the carried slopes and the
+    # compensation are not differentiated (the slopes only start the next
+    # run's stages; the compensation is below the state's rounding).
+    result, total, worst, carried, compensation = jax.lax.stop_gradient(counts)
+    return saved, (y_last, compensation), result, total, worst, carried
 
 
-def _forward(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk):
-    """Every step, keeping the state at the end of each chunk of `chunk` steps."""
+def _forward(diff, method, start, t0, dt, steps_done, num_saves, chunks_per_save, chunk):
+    """Every step, keeping the state at the end of each chunk of `chunk`
+    steps; `start` is (what the first step carries, the compensation)."""
     y0, args, vector_field = diff
+    carried0, compensation0 = start
     one_step = counted_step(method, vector_field, t0, dt, args)
 
     def one_chunk(carry, first):
@@ -132,27 +138,27 @@ def _forward(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_s
         carry, kept = jax.lax.scan(one_chunk, carry, first + chunk * jnp.arange(chunks_per_save, dtype=jnp.int32))
         return carry, kept
 
-    init = counted_start(y0, carried0)
+    init = counted_start(y0, carried0, compensation0)
     save_starts = steps_done + chunks_per_save * chunk * jnp.arange(num_saves, dtype=jnp.int32)
-    (y_last, result, total, worst, carried), kept = jax.lax.scan(one_save, init, save_starts)
-    return kept, (y_last, result, total, worst, carried)
+    (y_last, compensation, result, total, worst, carried), kept = jax.lax.scan(one_save, init, save_starts)
+    return kept, (y_last, result, total, worst, carried, compensation)
 
 
-def _outputs_and_kept(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk):
-    kept, (y_last, result, total, worst, carried) = _forward(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk)
+def _outputs_and_kept(diff, method, start, t0, dt, steps_done, num_saves, chunks_per_save, chunk):
+    kept, (y_last, *counts) = _forward(diff, method, start, t0, dt, steps_done, num_saves, chunks_per_save, chunk)
     saved = jax.tree.map(lambda x: x[:, -1], kept)  # each save interval's last chunk ends at the saved state
-    return (saved, y_last, result, total, worst, carried), kept
+    return (saved, y_last, *counts), kept
 
 
 @eqx.filter_custom_vjp
-def _run_and_undo(diff, method, undo, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk, tolerance):
-    return _outputs_and_kept(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk)[0]
+def _run_and_undo(diff, method, undo, start, t0, dt, steps_done, num_saves, chunks_per_save, chunk, tolerance):
+    return _outputs_and_kept(diff, method, start, t0, dt, steps_done, num_saves, chunks_per_save, chunk)[0]
 
 
 @_run_and_undo.def_fwd
-def _run_and_undo_fwd(perturbed, diff, method, undo, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk, tolerance):
+def _run_and_undo_fwd(perturbed, diff, method, undo, start, t0, dt, steps_done, num_saves, chunks_per_save, chunk, tolerance):
     del perturbed
-    return _outputs_and_kept(diff, method, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk)
+    return _outputs_and_kept(diff, method, start, t0, dt, steps_done, num_saves, chunks_per_save, chunk)
 
 
 def _is_none(x) -> bool:
@@ -206,12 +212,12 @@ def _undo_each_other(method, undo) -> bool:
 
 @_run_and_undo.def_bwd
 def _run_and_undo_bwd(
-    kept, grad_out, perturbed, diff, method, undo, carried0, t0, dt, steps_done, num_saves, chunks_per_save, chunk, tolerance
+    kept, grad_out, perturbed, diff, method, undo, start, t0, dt, steps_done, num_saves, chunks_per_save, chunk, tolerance
 ):
     """Walk back chunk by chunk: reconstruct each state from the kept state at
     the chunk's end by `undo`'s step of −dt, and pull the cotangent back
     through the step's VJP there."""
-    del perturbed, carried0
+    del perturbed, start
     y0, args, vector_field = diff
     grad_saved, grad_last = grad_out[0], grad_out[1]
     zeros_y = jax.tree.map(jnp.zeros_like, y0)

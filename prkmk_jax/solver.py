@@ -16,7 +16,7 @@ from jaxtyping import Array
 
 from .bundles import AlgebraPair, BundleElement
 from .interpolation import OnGroupInterpolation
-from .method import AbstractMethod, checked_field_args, first_failure, tree_scale
+from .method import AbstractMethod, checked_field_args, compensated, first_failure, no_compensation, tree_scale
 
 DENSE_OUTPUT_TRUNCATION_ORDER = 4
 """Dense output evaluates df⁻¹ at the step's end truncated as for a method of
@@ -110,7 +110,9 @@ class PRKMKSolver(diffrax.AbstractSolver):
     diffrax's default keeps fewer checkpoints and recomputes more.
 
     The solver state carries the previous step's field at its start and its
-    stage slopes: the implicit stages start from them as `integrate` does.
+    stage slopes (the implicit stages start from them as `integrate` does),
+    and what the steps' sums lost to rounding, carried on as `integrate`
+    carries it (`method.compensated`).
 
     Batches: `jax.vmap` over `diffeqsolve` keeps each trajectory's own stage
     iterations and result. diffrax's step loop stops on the result, so under
@@ -174,7 +176,9 @@ class PRKMKSolver(diffrax.AbstractSolver):
         # 0·x for floats; the `where` keeps an infinite parameter from making it NaN).
         checked = [leaf for leaf in jax.tree.leaves((y0, checked_args)) if eqx.is_inexact_array(leaf)]
         zero = jnp.asarray(sum(jnp.sum(jnp.where(jnp.isfinite(leaf), leaf, 0) * 0) for leaf in checked))
-        return jax.tree.map(lambda x: x + zero.astype(x.dtype), carried)
+        # With it, what the steps' sums lost to rounding (`compensated`), as
+        # `integrate` carries it: nothing yet.
+        return jax.tree.map(lambda x: x + zero.astype(x.dtype), carried), no_compensation(y0)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del made_jump  # the carried slopes are only a starting guess
@@ -182,16 +186,19 @@ class PRKMKSolver(diffrax.AbstractSolver):
         direction = field.direction
         s0, s1 = direction * t0, direction * t1
         h = s1 - s0
-        step = method.carried_step(field, s0, y0, h, args, solver_state)
-        y1, increment, result, carried = step.y, step.increment, step.result, step.carried
+        carried, compensation = solver_state
+        step = method.carried_step(field, s0, y0, h, args, carried)
+        increment, result, carried = step.increment, step.result, step.carried
+        y1, compensation_next = compensated(step.y, step.rounding, compensation)
         x0 = method.start_field(carried)  # the field at (s0, y0)
         y_next, y_error = y1, None
         if self.adaptive:
             # Two half steps: carried on, and their difference from the full
             # step (entrywise in the embedding) is the error estimate.
             first = method.step(field, s0, y0, h / 2, args)
-            second = method.step(field, s0 + h / 2, first.y, h / 2, args)
-            y_next = second.y
+            y_half, lost = compensated(first.y, first.rounding, compensation)
+            second = method.step(field, s0 + h / 2, y_half, h / 2, args)
+            y_next, compensation_next = compensated(second.y, second.rounding, lost)
             y_error = jax.tree.map(jnp.subtract, y_next, y1)
             for r in (first.result, second.result):
                 result = first_failure(result, r)
@@ -201,7 +208,7 @@ class PRKMKSolver(diffrax.AbstractSolver):
         slope0 = tree_scale(direction, x0)  # df⁻¹_0 = I
         slope1 = tree_scale(direction, method.slope(increment, x1, order=max(method.order, DENSE_OUTPUT_TRUNCATION_ORDER)))
         dense_info = dict(y0=y0, increment=increment, slope0=slope0, slope1=slope1, method=method)
-        return y_next, y_error, dense_info, carried, result
+        return y_next, y_error, dense_info, (carried, compensation_next), result
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)

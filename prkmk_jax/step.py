@@ -207,8 +207,8 @@ class PRKMK(AbstractMethod):
         _check_pairs("carried's field", (carried[0],), zeros)
         _check_pairs("carried's stage slopes", carried[1], zeros, self.tableau.num_stages)
         field_now, guesses = self.extrapolated_guesses(vector_field, t, y, args, carried)
-        y_next, increment, result, iterations, stages = self._solve_step(vector_field, t, y, dt, args, field_now, guesses)
-        return Step(y_next, increment, result, iterations, (field_now, stages))
+        y_next, rounding, increment, result, iterations, stages = self._solve_step(vector_field, t, y, dt, args, field_now, guesses)
+        return Step(y_next, increment, result, iterations, rounding, (field_now, stages))
 
     def step_at_stages(self, vector_field: VectorField, t: Time, y: BundleElement, dt: Time, args: PyTree, stages) -> Step:
         """The step from (t, y) whose stage slopes ((K₁, L₁), …, (K_s, L_s))
@@ -222,8 +222,8 @@ class PRKMK(AbstractMethod):
         self.check_vector_field(vector_field, t, y, args)
         _check_pairs("stages", stages, self.bundle.algebra_zeros(y), self.tableau.num_stages)
         field_now = self.generator(vector_field, t, y, args)
-        y_next, increment, result, iterations, solved = self._solve_step(vector_field, t, y, dt, args, field_now, stages, True)
-        return Step(y_next, increment, result, iterations, (field_now, solved))
+        y_next, rounding, increment, result, iterations, solved = self._solve_step(vector_field, t, y, dt, args, field_now, stages, True)
+        return Step(y_next, increment, result, iterations, rounding, (field_now, solved))
 
     def extrapolated_guesses(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree, carried):
         """(X(tₙ, yₙ), the stage guesses Kᵢ_prev + X(tₙ, yₙ) − X(tₙ₋₁, yₙ₋₁))
@@ -244,8 +244,9 @@ class PRKMK(AbstractMethod):
         stage_guesses: tuple[AlgebraPair, ...],
         stages_solved: bool = False,
     ):
-        """One step from (t, y) to t + dt. Returns (y_next, increment, result,
-        iterations, stage slopes ((K₁, L₁), …, (K_s, L_s))).
+        """One step from (t, y) to t + dt. Returns (y_next, its rounding
+        (`advance`), increment, result, iterations, stage slopes ((K₁, L₁), …,
+        (K_s, L_s))).
 
         `field_at_start` is `generator(vector_field, t, y, args)`, used where
         the step needs the field at (t, y) (explicit stages with U = 0 at
@@ -321,10 +322,10 @@ class PRKMK(AbstractMethod):
             u_next = rounded_once_combination(dt, tab.b_first, first, zeros[0])
         v_next = static_combination(dt, tab.b_second, second, zeros[1])
         u_next = zeros[0] if u_next is None else u_next
-        y_next = self.advance((u_next, v_next), y)
+        y_next, rounding = self.advance((u_next, v_next), y)
         increment = (u_next, zeros[1] if v_next is None else v_next)
         stages = tuple(zip(*([z if k is None else k for k in slopes] for slopes, z in zip((first, second), zeros))))
-        return y_next, increment, flag_nonfinite(result, y_next), iterations, stages
+        return y_next, rounding, increment, flag_nonfinite(result, y_next), iterations, stages
 
     def _stages_in_loop(self, zeros) -> bool:
         """Whether this step evaluates its (explicit) stages in a loop (see

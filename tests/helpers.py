@@ -252,6 +252,17 @@ class PositiveReals(pk.groups.AbstractLieGroup):
     def dexp_inv(cls, u, v):
         return v
 
+    @classmethod
+    def exp_change(cls, u):
+        return jnp.expm1(u)
+
+    @classmethod
+    def exp_adjoint_change(cls, u, x):
+        return jnp.zeros_like(x)
+
+    def product_change(self, change, side):
+        return PositiveReals(self.value * change)
+
 
 def run_under_default_codegen(code: str, *args: str) -> None:
     """Run `code` (a Python script) in a subprocess with XLA_FLAGS empty, so

@@ -61,6 +61,15 @@ class SquaredHalfCayley(pk.AbstractCoordinates):
         g = self.group_map(group, u)
         return g.adjoint(x) if sign > 0 else g.inverse().adjoint(x)
 
+    def group_map_change(self, group, u):
+        # c² − I = 2C + C² with C = c − I, the identity kept out.
+        change = group.cayley_change(0.5 * u)
+        return 2.0 * change + change @ change
+
+    def group_adjoint_change(self, group, u, x, sign):
+        # Ad_g x − x = (g − I) x on SO(3)'s vectors, and φ(u)⁻¹ = φ(−u).
+        return jnp.einsum("...ij,...j->...i", self.group_map_change(group, sign * u), x)
+
     def fiber_map(self, group, u, v, sign):
         return self.group_differential(group, sign * u, v)
 
@@ -184,9 +193,28 @@ class SO2(AbstractRotationGroup):
         return x
 
     @classmethod
+    def exp_change(cls, u):
+        # cos u − 1 = −2 sin²(u/2), which does not cancel.
+        half = jnp.sin(0.5 * u)
+        return cls._turn(jnp.sin(u), -2.0 * half * half).matrix
+
+    @classmethod
+    def exp_adjoint_change(cls, u, x):
+        return jnp.zeros_like(x)
+
+    @classmethod
     def cayley(cls, u):
         quarter = 0.25 * u * u
         return cls._turn(u / (1.0 + quarter), (1.0 - quarter) / (1.0 + quarter))
+
+    @classmethod
+    def cayley_change(cls, u):
+        quarter = 0.25 * u * u
+        return cls._turn(u / (1.0 + quarter), -2.0 * quarter / (1.0 + quarter)).matrix
+
+    @classmethod
+    def cayley_adjoint_change(cls, u, x):
+        return jnp.zeros_like(x)
 
     def cayley_inverse(self):
         return 2.0 * self.matrix[..., 1, 0:1] / (1.0 + self.matrix[..., 0, 0:1])

@@ -78,6 +78,15 @@ class AbstractCoordinates(eqx.Module):
         step on G ⋉ 𝔤 is this action, and φ(u) itself only enters the base."""
 
     @abc.abstractmethod
+    def group_map_change(self, group: type[AbstractLieGroup], u: Array) -> Array:
+        """φ(u) − e in the array a `group` element holds, the identity kept
+        out (`AbstractLieGroup.exp_change`)."""
+
+    @abc.abstractmethod
+    def group_adjoint_change(self, group: type[AbstractLieGroup], u: Array, x: Array, sign: float) -> Array:
+        """`group_adjoint` minus x: Ad_{φ(u)^{±1}} x − x, x kept out."""
+
+    @abc.abstractmethod
     def fiber_map(self, group: type[AbstractLieGroup], u: Array, v: Array, sign: float) -> Array:
         """ψ_{σu} v with σ = `sign`, the fiber part of f(u, v) on G ⋉ 𝔤:
         σ = −1.0 in left and 1.0 in right trivialisation (module docstring)."""
@@ -125,6 +134,12 @@ class AbstractCoordinates(eqx.Module):
         may be None, a zero known at trace time (`AbstractBundle.lifted_multiply`)."""
         self.check_bundle(bundle)
         return bundle.lifted_multiply(self, U, y, form)
+
+    def apply_change(self, bundle: AbstractBundle, U: Increment, y: BundleElement, form: Literal["space", "body"]) -> BundleElement:
+        """`apply` minus y, y kept out: the change of each array of the state,
+        rounded relative to the change (`AbstractBundle.lifted_change`)."""
+        self.check_bundle(bundle)
+        return bundle.lifted_change(self, U, y, form)
 
     def exact_inverse_differential(self, bundle: AbstractBundle, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
         """df⁻¹_U(X) without truncation."""

@@ -77,6 +77,12 @@ class Cayley(AbstractCoordinates):
         # cay(u)⁻¹ = cay(−u).
         return _quadratic_group(group).cayley_adjoint(sign * u, x)
 
+    def group_map_change(self, group, u):
+        return _quadratic_group(group).cayley_change(u)
+
+    def group_adjoint_change(self, group, u, x, sign):
+        return _quadratic_group(group).cayley_adjoint_change(sign * u, x)
+
     def fiber_map(self, group, u, v, sign):
         # (cay(σ ad_u) − I)/(σ ad_u) = (I − ½σ ad_u)⁻¹.
         return _quadratic_group(group).inverse_shifted_ad(u, v, -0.5 * sign)

@@ -49,6 +49,12 @@ class Exp(AbstractCoordinates):
         # exp(u)⁻¹ = exp(−u).
         return group.exp_adjoint(sign * u, x)
 
+    def group_map_change(self, group, u):
+        return group.exp_change(u)
+
+    def group_adjoint_change(self, group, u, x, sign):
+        return group.exp_adjoint_change(sign * u, x)
+
     def fiber_map(self, group, u, v, sign):
         return group.dexp(sign * u, v)
 

@@ -15,7 +15,7 @@ Conventions used throughout the package (they fix every sign):
 """
 
 import abc
-from typing import Self
+from typing import Literal, Self
 
 import equinox as eqx
 from jaxtyping import Array
@@ -107,6 +107,27 @@ class AbstractLieGroup(eqx.Module):
         form act on x directly, without forming exp(u) (Rodrigues on SO(3)):
         the fiber update of a PRKMK step on G⋉g is this action."""
 
+    # --- changes: the difference of two nearby elements, the identity kept out ----
+    @classmethod
+    @abc.abstractmethod
+    def exp_change(cls, u: Array) -> Array:
+        """exp(u) − e in the array an element holds (the matrix of a rotation),
+        computed without adding the identity in: its rounding is relative to
+        the change, not to e. A step's update is summed from it (compensated
+        summation, `AbstractMethod.advance`)."""
+
+    @classmethod
+    @abc.abstractmethod
+    def exp_adjoint_change(cls, u: Array, x: Array) -> Array:
+        """Ad_{exp(u)} x − x, computed without adding x in (see `exp_change`)."""
+
+    @abc.abstractmethod
+    def product_change(self, change: Array, side: Literal["right", "left"]) -> Self:
+        """self·g − self (`side="right"`) or g·self − self (`"left"`) for the g
+        with g − e = `change` (`exp_change`): a container with an element's
+        shape holding the difference of the two elements' arrays, not a
+        group element."""
+
     def __matmul__(self, other: Self) -> Self:
         return self.multiply(other)
 
@@ -141,6 +162,16 @@ class AbstractQuadraticGroup(AbstractLieGroup):
     @abc.abstractmethod
     def cayley_adjoint(cls, u: Array, x: Array) -> Array:
         """Ad_{cay(u)} x, the same as `cayley(u).adjoint(x)` (see `exp_adjoint`)."""
+
+    @classmethod
+    @abc.abstractmethod
+    def cayley_change(cls, u: Array) -> Array:
+        """cay(u) − e, the identity kept out (see `exp_change`)."""
+
+    @classmethod
+    @abc.abstractmethod
+    def cayley_adjoint_change(cls, u: Array, x: Array) -> Array:
+        """Ad_{cay(u)} x − x, x kept out (see `exp_change`)."""
 
     @classmethod
     @abc.abstractmethod

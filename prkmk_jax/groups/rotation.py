@@ -1,6 +1,6 @@
 """Rotations as orthogonal matrices: what SO(3) and SO(n) share."""
 
-from typing import Self
+from typing import Literal, Self
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -40,3 +40,6 @@ class AbstractRotationGroup(AbstractQuadraticGroup):
 
     def renormalized(self) -> Self:
         return self._with_matrix(bjorck_step_where_drifted(self.matrix))
+
+    def product_change(self, change: Array, side: Literal["right", "left"]) -> Self:
+        return self._with_matrix(self.matrix @ change if side == "right" else change @ self.matrix)

@@ -141,6 +141,13 @@ class SO3(AbstractRotationGroup):
         # û² = uuᵀ − θ² I
         return cls(_eye_plus(1.0 - b * t2, a, b, u))
 
+    @classmethod
+    def exp_change(cls, u: Vector3) -> Float[Array, "*batch 3 3"]:
+        """exp(û) − I = (sin θ/θ) û + ((1 − cos θ)/θ²) û², the identity kept out."""
+        t2 = _theta_sq(u)
+        a, b = _rotation_coefficients(t2)
+        return _eye_plus(-b * t2, a, b, u)
+
     def log(self) -> Vector3:
         """Rotation vector with angle in [0, π], through the unit quaternion
         (Shepperd's branch choice, robust near θ = π)."""
@@ -228,6 +235,13 @@ class SO3(AbstractRotationGroup):
         return x + a[..., None] * ux + b[..., None] * uux
 
     @classmethod
+    def exp_adjoint_change(cls, u: Vector3, x: Vector3) -> Vector3:
+        """exp(û) x − x = (sin θ/θ) u×x + ((1 − cos θ)/θ²) u×(u×x)."""
+        a, b = _rotation_coefficients(_theta_sq(u))
+        ux, uux = _rotation_terms(u, x)
+        return a[..., None] * ux + b[..., None] * uux
+
+    @classmethod
     def inverse_shifted_ad(cls, u: Vector3, v: Vector3, alpha: float) -> Vector3:
         """(I + αû)⁻¹ v = (v − α u×v + α²(u·v) u)/(1 + α²θ²)."""
         alpha2 = alpha * alpha
@@ -240,6 +254,13 @@ class SO3(AbstractRotationGroup):
         k = 4.0 / (4.0 + t2)
         # û + û²/2 = û + (uuᵀ − θ² I)/2
         return cls(_eye_plus(1.0 - 0.5 * k * t2, k, 0.5 * k, u))
+
+    @classmethod
+    def cayley_change(cls, u: Vector3) -> Float[Array, "*batch 3 3"]:
+        """cay(û) − I = 4/(4 + θ²) (û + û²/2), the identity kept out."""
+        t2 = _theta_sq(u)
+        k = 4.0 / (4.0 + t2)
+        return _eye_plus(-0.5 * k * t2, k, 0.5 * k, u)
 
     def cayley_inverse(self) -> Vector3:
         """cay⁻¹(R) = 2 vee(R − Rᵀ)/(1 + tr R): for R = cay(u), R − Rᵀ = 2kû and
@@ -269,3 +290,10 @@ class SO3(AbstractRotationGroup):
         k = 4.0 / (4.0 + _theta_sq(u))
         ux, uux = _rotation_terms(u, x)
         return x + k[..., None] * (ux + 0.5 * uux)
+
+    @classmethod
+    def cayley_adjoint_change(cls, u: Vector3, x: Vector3) -> Vector3:
+        """cay(û) x − x = 4/(4 + θ²) (u×x + ½ u×(u×x))."""
+        k = 4.0 / (4.0 + _theta_sq(u))
+        ux, uux = _rotation_terms(u, x)
+        return k[..., None] * (ux + 0.5 * uux)

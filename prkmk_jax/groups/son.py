@@ -94,6 +94,11 @@ def _dexp_inv_closed_form(u, v, check=None):
     return 0.5 * (out - _transpose(out))
 
 
+_CHANGE_SERIES_TERMS = 18
+"""Powers of u in `SOn.exp_change`'s series: for ‖u‖ < 1 the rest is below
+1/19! < eps(float64)/20 of the change."""
+
+
 def _transpose(m):
     return jnp.swapaxes(m, -1, -2)
 
@@ -228,6 +233,23 @@ class SOn(AbstractRotationGroup):
             expm = jax.vmap(expm)
         return cls(expm(u))
 
+    @classmethod
+    def exp_change(cls, u: Skew) -> Skew:
+        """exp(u) − I, the identity kept out: for ‖u‖_F < 1 the series
+        u(I + u/2(I + u/3(…))) to the term u^`_CHANGE_SERIES_TERMS` (its
+        remainder below eps relative to the change), beyond it expm(u) − I,
+        which then cancels little. Double where: each branch sees an argument
+        it handles."""
+        small = jnp.sum(u**2, axis=(-2, -1)) < 1.0
+        series_u = jnp.where(small[..., None, None], u, 0.0)
+        eye = _eye_like(u)
+        acc = eye
+        for k in range(_CHANGE_SERIES_TERMS, 1, -1):
+            acc = eye + (series_u @ acc) / k
+        series = series_u @ acc
+        closed = cls.exp(jnp.where(small[..., None, None], 0.0, u)).matrix - eye
+        return jnp.where(small[..., None, None], series, closed)
+
     def log(self) -> Skew:
         """Principal logarithm (angles ≤ π) from the split R = S + A.
 
@@ -316,6 +338,11 @@ class SOn(AbstractRotationGroup):
         return cls.exp(u).adjoint(x)
 
     @classmethod
+    def exp_adjoint_change(cls, u: Skew, x: Skew) -> Skew:
+        """g x gᵀ − x = E x + x Eᵀ + E x Eᵀ with E = g − I (`exp_change`)."""
+        return _adjoint_change(cls.exp_change(u), x)
+
+    @classmethod
     def inverse_shifted_ad(cls, u: Skew, v: Skew, alpha: float) -> Skew:
         """Dense solve on the flattened algebra (ad_u as an n²×n² matrix)."""
         if u.ndim > 2:
@@ -328,6 +355,11 @@ class SOn(AbstractRotationGroup):
     def cayley(cls, u: Skew) -> Self:
         eye = _eye_like(u)
         return cls(jnp.linalg.solve(eye - 0.5 * u, eye + 0.5 * u))
+
+    @classmethod
+    def cayley_change(cls, u: Skew) -> Skew:
+        """cay(u) − I = (I − u/2)⁻¹ u, the identity kept out."""
+        return jnp.linalg.solve(_eye_like(u) - 0.5 * u, u)
 
     def cayley_inverse(self) -> Skew:
         r = self.matrix
@@ -349,3 +381,14 @@ class SOn(AbstractRotationGroup):
     @classmethod
     def cayley_adjoint(cls, u: Skew, x: Skew) -> Skew:
         return cls.cayley(u).adjoint(x)
+
+    @classmethod
+    def cayley_adjoint_change(cls, u: Skew, x: Skew) -> Skew:
+        """g x gᵀ − x for g = cay(u) (see `exp_adjoint_change`)."""
+        return _adjoint_change(cls.cayley_change(u), x)
+
+
+def _adjoint_change(change: Array, x: Array) -> Array:
+    """g x gᵀ − x for the rotation g = I + `change`, x kept out."""
+    moved = change @ x
+    return moved + x @ _transpose(change) + moved @ _transpose(change)

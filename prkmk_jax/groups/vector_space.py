@@ -1,6 +1,6 @@
 """The additive group ℝⁿ (any trailing shape): product is +, exp is the identity."""
 
-from typing import ClassVar, Self
+from typing import ClassVar, Literal, Self
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -98,3 +98,23 @@ class VectorSpace(AbstractQuadraticGroup):
     @classmethod
     def cayley_adjoint(cls, u: Vector, x: Vector) -> Vector:
         return x
+
+    @classmethod
+    def exp_change(cls, u: Vector) -> Vector:
+        return u
+
+    @classmethod
+    def exp_adjoint_change(cls, u: Vector, x: Vector) -> Vector:
+        return jnp.zeros_like(x)
+
+    def product_change(self, change: Vector, side: Literal["right", "left"]) -> Self:
+        # The product is +: self + change − self.
+        return type(self)(change)
+
+    @classmethod
+    def cayley_change(cls, u: Vector) -> Vector:
+        return u
+
+    @classmethod
+    def cayley_adjoint_change(cls, u: Vector, x: Vector) -> Vector:
+        return jnp.zeros_like(x)
