@@ -13,7 +13,8 @@ in alternation. Columns: ns per trajectory-step of each, the median of the
 per-round ratios now/before, and the compile times.
 
 Methods: a PRKMK tableau with exp or Cayley coordinates ("symmetrized
-lobatto_iiia_iiib4": its `Symmetrized`), or the free body's exact-flow
+lobatto_iiia_iiib4": its `Symmetrized`; "plain stormer_verlet": with
+`compensated_sum=False`, where the revision has the option), or the free body's exact-flow
 splitting ("splitting": Strang; "splitting kahan_li_8":
 composed to order 8). Paths: `integrate` (lax.scan) vmapped over the batch,
 `in_state` (the batch as leading axes of the state, one run),
@@ -37,6 +38,7 @@ import tempfile
 from pathlib import Path
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -61,6 +63,11 @@ def import_revision(rev: str):
 
 def _method(lib, tableau, coordinates):
     coords = lib.Exp() if coordinates == "exp" else lib.Cayley()
+    if tableau.startswith("plain "):
+        # The step's product as it is, without compensated summation (a
+        # revision from before the option has only that).
+        method = _method(lib, tableau.removeprefix("plain "), coordinates)
+        return eqx.tree_at(lambda m: m.compensated_sum, method, False) if hasattr(method, "compensated_sum") else method
     if tableau.startswith("symmetrized "):
         return lib.Symmetrized(_method(lib, tableau.removeprefix("symmetrized "), coordinates))
     if tableau.startswith("splitting"):
@@ -228,8 +235,10 @@ def main(argv=None):
             for batch in (1, 1024)
         ]
         # Methods made of steps and the splittings, whose steps the drivers
-        # also sum (`compensated`).
+        # also sum (`compensated`), and the step without compensated
+        # summation (`compensated_sum=False`).
         cases += [("symmetrized lobatto_iiia_iiib4", "exp", "integrate", 64, jnp.float64, "free body")]
+        cases += [("plain stormer_verlet", coords, "integrate", 64, jnp.float64, "free body") for coords in ("exp", "cayley")]
         cases += [
             (method, "exp", path, batch, jnp.float64, "free body")
             for method in ("splitting", "splitting kahan_li_8")

@@ -168,7 +168,7 @@ def _adjoint_step(method: PRKMK, vector_field, t, y, dt, args, field_now, guesse
         # the formula of which they are a fixed point (`exact_sums`).
         u_rounded_once = rounded_once_combination(dt, tab.b_first, first, zeros[0])
         u_next = zeros[0] if u_rounded_once is None else u_rounded_once
-    y_next, rounding = method.advance((u_next, v_next), y)
+    y_next, rounding = method.advance((u_next, v_next), y, method.compensated_sum)
     increment_made = (u_next, zeros[1] if v_next is None else v_next)
     return Step(y_next, increment_made, flag_nonfinite(result, y_next), iterations, rounding, (field_now, stages))
 

@@ -18,6 +18,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Int, PyTree, Real
 
 from .bundles import AbstractBundle, AlgebraPair, BundleElement, Increment
@@ -108,7 +109,20 @@ def no_compensation(y: BundleElement) -> BundleElement:
     return jax.tree.map(jnp.zeros_like, y)
 
 
-def compensated(y: BundleElement, rounding: BundleElement, compensation: BundleElement) -> tuple[BundleElement, BundleElement]:
+def computed_once_tree(tree: PyTree) -> PyTree:
+    """`tree`'s arrays, each computed once by XLA: raveled into one array
+    behind an optimisation barrier (`groups.computed_once`: a barrier on a
+    tuple is fused through). An error-free sum reads each of its operands
+    twice, and XLA would otherwise recompute the arithmetic behind them, a
+    step's whole update, in each reader."""
+    leaves, structure = jax.tree.flatten(tree)
+    flat = jax.lax.optimization_barrier(jnp.concatenate([jnp.ravel(leaf) for leaf in leaves]))
+    ends = np.cumsum([leaf.size for leaf in leaves])
+    parts = [flat[end - leaf.size : end].reshape(leaf.shape) for leaf, end in zip(leaves, ends)]
+    return jax.tree.unflatten(structure, parts)
+
+
+def compensated(y: BundleElement, rounding: BundleElement | None, compensation: BundleElement) -> tuple[BundleElement, BundleElement]:
     """One update of a run's compensated summation (Kahan): the state `y` a
     step returned, plus what its update lost to rounding (`Step.rounding`)
     and what the run's earlier updates lost (`compensation`), summed so that
@@ -124,9 +138,13 @@ def compensated(y: BundleElement, rounding: BundleElement, compensation: BundleE
 
         y, lost = compensated(step.y, step.rounding, lost)
 
-    The compensation is a correction below the state's rounding, zero in
-    exact arithmetic: it is not differentiated."""
+    A step without a rounding (None) leaves y and the compensation as they
+    are. The compensation is a correction below the state's rounding, zero
+    in exact arithmetic: it is not differentiated."""
+    if rounding is None:
+        return y, compensation
     small = jax.lax.stop_gradient(jax.tree.map(jnp.add, rounding, compensation))
+    y, small = computed_once_tree((y, small))
     summed = jax.tree.map(two_sum, y, small)
     y_next = jax.tree.map(lambda _, pair: pair[0], y, summed)
     lost = jax.tree.map(lambda _, pair: pair[1], y, summed)
@@ -167,11 +185,12 @@ class Step(eqx.Module):
     not converge, a non-finite state)."""
     iterations: Iterations
     """The implicit iterations the step took."""
-    rounding: BundleElement
+    rounding: BundleElement | None
     """What the update lost to rounding, array by array: y_start + change =
     y + rounding exactly, for the change the step computed (`advance`).
-    The drivers carry it on (`compensated`); zeros where the step has no
-    such sum (a `Splitting`'s rotations, low precision)."""
+    The drivers carry it on (`compensated`). None where the step has no
+    such sum: a `Splitting`'s rotations, and low precision, where the state
+    is renormalised instead."""
     carried: Any
     """What the next step starts from: the field at this step's start and,
     for implicit stages, this step's stage slopes, the next step's starting
@@ -239,14 +258,16 @@ class AbstractMethod(eqx.Module):
         (`AbstractBundle.lifted_multiply`)."""
         return self.coordinates.apply(self.bundle, U, y, self.form)
 
-    def advance(self, U: Increment, y: BundleElement) -> tuple[BundleElement, BundleElement]:
+    def advance(self, U: Increment, y: BundleElement, compensate: bool = True) -> tuple[BundleElement, BundleElement | None]:
         """The step's new state `apply_increment(U, y)` and what its sum lost
         to rounding (`Step.rounding`).
 
-        The state is summed as y + (f(U)⊙y − y), the change computed with y
-        kept out of it (`AbstractCoordinates.apply_change`), so it is rounded
-        relative to the change; the sum's rounding is returned exactly
-        (`two_sum`), for the driver to carry on (`compensated`).
+        With `compensate`, the state is summed as y + (f(U)⊙y − y), the
+        change computed with y kept out of it
+        (`AbstractCoordinates.apply_change`), so it is rounded relative to
+        the change; the sum's rounding is returned exactly (`two_sum`), for
+        the driver to carry on (`compensated`). Without, the product as it
+        is, and no rounding (None).
 
         In low precision (machine epsilon above `LOW_PRECISION_EPS`) the
         product is taken as it is and corrected back onto the group where
@@ -254,11 +275,12 @@ class AbstractMethod(eqx.Module):
         (`AbstractBundle.renormalized`): there the rounding of f(U) and of the
         product is systematic for steady motions and would pull the state off
         the group a little every step. The correction has no exact sum to
-        compensate: the rounding is returned as zeros."""
+        compensate: the rounding is None."""
         if jnp.finfo(jnp.result_type(*jax.tree.leaves(y))).eps > LOW_PRECISION_EPS:
-            y_next = self.bundle.renormalized(self.apply_increment(U, y))
-            return y_next, no_compensation(y_next)
-        change = self.coordinates.apply_change(self.bundle, U, y, self.form)
+            return self.bundle.renormalized(self.apply_increment(U, y)), None
+        if not compensate:
+            return self.apply_increment(U, y), None
+        change = computed_once_tree(self.coordinates.apply_change(self.bundle, U, y, self.form))
         summed = jax.tree.map(two_sum, y, change)
         y_next = jax.tree.map(lambda _, pair: pair[0], y, summed)
         rounding = jax.tree.map(lambda _, pair: pair[1], y, summed)

@@ -38,7 +38,7 @@ from .compositions import CompositionCoefficients
 from .coordinates import AbstractCoordinates, Exp
 from .exact_flows import AbstractSplitScene, renormalized_rotations
 from .groups.trig import computed_once
-from .method import LOW_PRECISION_EPS, RESULTS, AbstractMethod, Step, Time, VectorField, flag_nonfinite, no_compensation
+from .method import LOW_PRECISION_EPS, RESULTS, AbstractMethod, Step, Time, VectorField, flag_nonfinite
 
 FUSED_SUB_STEPS = 5
 """At most this many sub-steps of a step are left to XLA to fuse; then
@@ -165,7 +165,7 @@ class Splitting(AbstractMethod):
         field_now = self.generator(vector_field, t, y, args)
         result = flag_nonfinite(RESULTS.successful, y_next)
         # Rotations of the packed rows, not a sum: nothing to compensate.
-        return Step(y_next, self.increment_between(y, y_next), result, jnp.array(0, jnp.int32), no_compensation(y_next), field_now)
+        return Step(y_next, self.increment_between(y, y_next), result, jnp.array(0, jnp.int32), None, field_now)
 
     def _sub_steps(self, num_parts: int) -> tuple[tuple[int, float, float], ...]:
         """This method's sub-steps (`sub_steps`): its composition's fractions,

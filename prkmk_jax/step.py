@@ -80,6 +80,15 @@ class PRKMK(AbstractMethod):
       sooner. `benchmarks/round_off.py` measures both: the growth exponent
       and the cost.
       An optimistix `root_finder` stops by its own tolerances.
+    - `compensated_sum`: how the step's change is added to the state.
+      True (default): computed with the state kept out of it, added, and
+      what the sum loses to rounding handed on (`Step.rounding`), which the
+      drivers carry into the next step's sum (`compensated`): a long run's
+      rounding error then grows with that of the steps' changes, several
+      times smaller than with the state rounded at each step. False: the
+      product f(U)⊙y as it is, a little quicker a step
+      (`benchmarks/against_revision.py` measures both), for runs too short
+      to notice.
     - `max_iterations`: iteration cap of each implicit block's loop (with
       `iterate_until="round-off"` one more evaluation follows it).
     - `root_finder`: an optimistix fixed-point solver or root finder (e.g.
@@ -123,6 +132,7 @@ class PRKMK(AbstractMethod):
     coupling: Literal["traced", "tableau"] = eqx.field(static=True, default="traced")
     explicit_stages: Literal["auto", "unrolled", "loop"] = eqx.field(static=True, default="auto")
     iterate_until: Literal["round-off", "tolerance"] = eqx.field(static=True, default="round-off")
+    compensated_sum: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         if not isinstance(self.bundle, AbstractBundle):
@@ -147,6 +157,8 @@ class PRKMK(AbstractMethod):
             raise ValueError(f"coupling must be 'traced' (read from the field's program) or 'tableau', got {self.coupling!r}.")
         if self.explicit_stages not in ("auto", "unrolled", "loop"):
             raise ValueError(f"explicit_stages must be 'auto', 'unrolled' or 'loop', got {self.explicit_stages!r}.")
+        if not isinstance(self.compensated_sum, bool):
+            raise TypeError(f"compensated_sum must be True or False, got {self.compensated_sum!r}.")
         if self.iterate_until not in ("round-off", "tolerance"):
             raise ValueError(
                 "iterate_until must be 'round-off' (until the increments stop shrinking) or 'tolerance' (rtol/atol), "
@@ -322,7 +334,7 @@ class PRKMK(AbstractMethod):
             u_next = rounded_once_combination(dt, tab.b_first, first, zeros[0])
         v_next = static_combination(dt, tab.b_second, second, zeros[1])
         u_next = zeros[0] if u_next is None else u_next
-        y_next, rounding = self.advance((u_next, v_next), y)
+        y_next, rounding = self.advance((u_next, v_next), y, self.compensated_sum)
         increment = (u_next, zeros[1] if v_next is None else v_next)
         stages = tuple(zip(*([z if k is None else k for k in slopes] for slopes, z in zip((first, second), zeros))))
         return y_next, rounding, increment, flag_nonfinite(result, y_next), iterations, stages

@@ -98,46 +98,69 @@ def test_compensated_keeps_what_the_sum_loses():
         assert np.all(np.asarray(leaf_next) == np.asarray(leaf_y + leaf_total))
 
 
-def _free_body_energy_errors(compensate: bool, num_steps=20_000, batch=16, h=0.1):
-    """The largest relative energy error of SV exp on the free body over
-    `num_steps`, per random initial state: through `integrate` (compensated)
-    or by hand, each step's rounded state taken as it is."""
+def _free_body_runs(num_steps=20_000, batch=16, h=0.1, every=1000):
+    """SV exp on the free body from `batch` random initial states (unit |Π|)."""
     scene = FreeRigidBody()
-    method = scene.method(pk.stormer_verlet)
     rng = np.random.default_rng(3)
     momenta = rng.normal(size=(batch, 3))
     momenta /= np.linalg.norm(momenta, axis=1, keepdims=True)
     y0 = pk.BundleElement(pk.SO3(jnp.asarray(np.stack([random_rotation(s) for s in range(batch)]))), jnp.asarray(momenta))
     inertia = jnp.asarray(PAPER_INERTIA)
-    every = num_steps // 20
 
-    def by_integrate(y):
-        return pk.integrate(method, scene, y, 0.0, h, num_steps, inertia, save_every=every).ys.fiber
+    def run(method):
+        return jax.jit(jax.vmap(lambda y: pk.integrate(method, scene, y, 0.0, h, num_steps, inertia, save_every=every)))(y0)
 
-    def by_hand(y):
-        def one_step(carry, n):
-            y, carried = carry
-            step = method.step(scene, n * h, y, h, inertia, carried)
-            return (step.y, step.carried), None
-
-        def one_save(carry, first):
-            carry, _ = jax.lax.scan(one_step, carry, first + jnp.arange(every))
-            return carry, carry[0].fiber
-
-        _, fibers = jax.lax.scan(one_save, (y, method.initial_carried(scene, 0.0, y, inertia)), every * jnp.arange(20))
-        return jnp.concatenate([y.fiber[None], fibers])
-
-    momenta_run = np.asarray(jax.jit(jax.vmap(by_integrate if compensate else by_hand))(y0))
-    energy = 0.5 * np.sum(momenta_run**2 / PAPER_INERTIA, axis=-1)
-    return np.max(np.abs(energy / energy[:, :1] - 1), axis=1)
+    return scene, inertia, y0, run
 
 
 def test_compensation_shrinks_a_long_runs_rounding_error():
     """SV keeps the free body's energy exactly in exact arithmetic, so its
     energy error is rounding alone. Over 2·10⁴ steps from 16 random states,
-    with the updates' roundings carried on the median error is several times
-    smaller than with each step's rounded state taken as it is."""
-    compensated_errors = _free_body_energy_errors(True)
-    plain_errors = _free_body_energy_errors(False)
-    assert np.median(compensated_errors) * 4 < np.median(plain_errors)
-    assert np.median(compensated_errors) < 1e-14
+    with the updates' roundings carried on the median of the largest errors
+    is several times smaller than with the product taken as it is
+    (`compensated_sum=False`)."""
+    scene, inertia, _, run = _free_body_runs()
+
+    def median_error(compensated_sum):
+        trajectory = run(scene.method(pk.stormer_verlet, compensated_sum=compensated_sum))
+        energy = np.asarray(scene.invariants(trajectory.ys, inertia)["energy"])
+        return np.median(np.max(np.abs(energy / energy[:, :1] - 1), axis=1))
+
+    with_compensation, without = median_error(True), median_error(False)
+    assert with_compensation * 4 < without
+    assert with_compensation < 1e-14
+
+
+def test_a_loop_of_steps_summed_with_compensated_is_integrate():
+    """`compensated` as its docstring shows, in a loop of `step`: the same
+    states as `integrate`, bit for bit, and the same compensation as the
+    continuation's."""
+    scene, inertia, y0, run = _free_body_runs(num_steps=300, batch=4, every=300)
+    method = scene.method(pk.stormer_verlet)
+    trajectory = run(method)
+
+    def by_hand(y):
+        def one_step(carry, n):
+            y, lost, carried = carry
+            step = method.step(scene, n * 0.1, y, 0.1, inertia, carried)
+            y, lost = pk.compensated(step.y, step.rounding, lost)
+            return (y, lost, step.carried), None
+
+        start = (y, jax.tree.map(jnp.zeros_like, y), method.initial_carried(scene, 0.0, y, inertia))
+        (y, lost, _), _ = jax.lax.scan(one_step, start, jnp.arange(300))
+        return y, lost
+
+    y_last, lost = jax.jit(jax.vmap(by_hand))(y0)
+    assert max_leaf_difference(y_last, trajectory.continuation.y) == 0.0
+    assert max_leaf_difference(lost, trajectory.continuation.compensation) == 0.0
+    assert max(float(jnp.max(jnp.abs(leaf))) for leaf in jax.tree.leaves(lost)) > 0.0
+
+
+def test_without_compensation_a_step_hands_on_no_rounding():
+    scene = FreeRigidBody()
+    y = pk.BundleElement(pk.SO3(jnp.eye(3)), jnp.array([0.3, -0.2, 0.9]))
+    step = scene.method(pk.stormer_verlet, compensated_sum=False).step(scene, 0.0, y, 0.1, jnp.asarray(PAPER_INERTIA))
+    assert step.rounding is None
+    assert scene.splitting().step(scene, 0.0, y, 0.1, jnp.asarray(PAPER_INERTIA)).rounding is None
+    with pytest.raises(TypeError, match="compensated_sum must be True or False"):
+        pk.PRKMK(pk.Cotangent(pk.SO3), compensated_sum=1)  # pyright: ignore[reportArgumentType]
