@@ -30,7 +30,7 @@ class Continuation(eqx.Module):
     step's start and its stage slopes, the next step's starting guesses)."""
     compensation: BundleElement
     """What the run's updates lost to rounding so far, below the last bit of
-    `y` (compensated summation, `method.compensated`): y + compensation is
+    `y` (compensated summation, `compensated`): y + compensation is
     the run's state to the rounding of each step's change."""
 
 

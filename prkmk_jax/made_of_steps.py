@@ -227,7 +227,8 @@ class Symmetrized(AbstractMadeOfSteps):
         y_next, lost = compensated(second.y, second.rounding, lost)
         result = first_failure(first.result, second.result)
         increment = self.increment_between(y, y_next)
-        return Step(y_next, increment, result, first.iterations + second.iterations, lost, (first.carried, second.carried))
+        rounding = None if first.rounding is None and second.rounding is None else lost
+        return Step(y_next, increment, result, first.iterations + second.iterations, rounding, (first.carried, second.carried))
 
 
 class Composition(AbstractMadeOfSteps):
@@ -296,17 +297,20 @@ class Composition(AbstractMadeOfSteps):
         fractions = jnp.asarray(self.coefficients.fractions, dtype)
         starts = jnp.concatenate([jnp.zeros(1, dtype), jnp.cumsum(fractions)[:-1]])
 
+        sums = []  # whether the sub-step hands on a rounding, seen as the scan traces it
+
         def substep(state, inputs):
             y_k, lost, result, iterations = state
             fraction, start, carried_k = inputs
             sub = self.method.step(vector_field, t + start * dt, y_k, fraction * dt, args, carried_k)
             # The sub-steps' roundings summed as the drivers sum steps' (`compensated`).
+            sums.append(sub.rounding is not None)
             y_k, lost = compensated(sub.y, sub.rounding, lost)
             return (y_k, lost, first_failure(result, sub.result), iterations + sub.iterations), sub.carried
 
         init = (y, no_compensation(y), RESULTS.successful, jnp.array(0, jnp.int32))
         (y_next, lost, result, iterations), carried = jax.lax.scan(substep, init, (fractions, starts, carried))
-        return Step(y_next, self.increment_between(y, y_next), result, iterations, lost, carried)
+        return Step(y_next, self.increment_between(y, y_next), result, iterations, lost if any(sums) else None, carried)
 
 
 def symmetry_defect(

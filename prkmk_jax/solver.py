@@ -112,7 +112,7 @@ class PRKMKSolver(diffrax.AbstractSolver):
     The solver state carries the previous step's field at its start and its
     stage slopes (the implicit stages start from them as `integrate` does),
     and what the steps' sums lost to rounding, carried on as `integrate`
-    carries it (`method.compensated`).
+    carries it (`compensated`).
 
     Batches: `jax.vmap` over `diffeqsolve` keeps each trajectory's own stage
     iterations and result. diffrax's step loop stops on the result, so under

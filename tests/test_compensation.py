@@ -162,5 +162,10 @@ def test_without_compensation_a_step_hands_on_no_rounding():
     step = scene.method(pk.stormer_verlet, compensated_sum=False).step(scene, 0.0, y, 0.1, jnp.asarray(PAPER_INERTIA))
     assert step.rounding is None
     assert scene.splitting().step(scene, 0.0, y, 0.1, jnp.asarray(PAPER_INERTIA)).rounding is None
+    plain = scene.method(pk.stormer_verlet, compensated_sum=False)
+    for made_of_steps in (pk.Symmetrized(plain), pk.Composition(pk.Symmetrized(plain), pk.triple_jump(2))):
+        assert made_of_steps.step(scene, 0.0, y, 0.1, jnp.asarray(PAPER_INERTIA)).rounding is None
+    summed = pk.Composition(pk.Symmetrized(scene.method(pk.stormer_verlet)), pk.triple_jump(2))
+    assert summed.step(scene, 0.0, y, 0.1, jnp.asarray(PAPER_INERTIA)).rounding is not None
     with pytest.raises(TypeError, match="compensated_sum must be True or False"):
         pk.PRKMK(pk.Cotangent(pk.SO3), compensated_sum=1)  # pyright: ignore[reportArgumentType]

@@ -113,8 +113,8 @@ class VectorSpace(AbstractQuadraticGroup):
 
     @classmethod
     def cayley_change(cls, u: Vector) -> Vector:
-        return u
+        return cls.exp_change(u)  # cay = exp: translation by u
 
     @classmethod
     def cayley_adjoint_change(cls, u: Vector, x: Vector) -> Vector:
-        return jnp.zeros_like(x)
+        return cls.exp_adjoint_change(u, x)
