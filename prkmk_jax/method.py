@@ -109,6 +109,12 @@ def no_compensation(y: BundleElement) -> BundleElement:
     return jax.tree.map(jnp.zeros_like, y)
 
 
+def tree_two_sum(a: PyTree, b: PyTree) -> tuple[PyTree, PyTree]:
+    """`two_sum` leaf by leaf: (a + b rounded, its rounding error)."""
+    summed = jax.tree.map(two_sum, a, b)
+    return jax.tree.map(lambda _, pair: pair[0], a, summed), jax.tree.map(lambda _, pair: pair[1], a, summed)
+
+
 def computed_once_tree(tree: PyTree) -> PyTree:
     """`tree`'s arrays, each computed once by XLA: raveled into one array
     behind an optimisation barrier (`groups.computed_once`: a barrier on a
@@ -144,10 +150,7 @@ def compensated(y: BundleElement, rounding: BundleElement | None, compensation: 
     if rounding is None:
         return y, compensation
     small = jax.lax.stop_gradient(jax.tree.map(jnp.add, rounding, compensation))
-    y, small = computed_once_tree((y, small))
-    summed = jax.tree.map(two_sum, y, small)
-    y_next = jax.tree.map(lambda _, pair: pair[0], y, summed)
-    lost = jax.tree.map(lambda _, pair: pair[1], y, summed)
+    y_next, lost = tree_two_sum(*computed_once_tree((y, small)))
     return y_next, jax.lax.stop_gradient(lost)
 
 
@@ -281,9 +284,7 @@ class AbstractMethod(eqx.Module):
         if not compensate:
             return self.apply_increment(U, y), None
         change = computed_once_tree(self.coordinates.apply_change(self.bundle, U, y, self.form))
-        summed = jax.tree.map(two_sum, y, change)
-        y_next = jax.tree.map(lambda _, pair: pair[0], y, summed)
-        rounding = jax.tree.map(lambda _, pair: pair[1], y, summed)
+        y_next, rounding = tree_two_sum(y, change)
         return y_next, jax.lax.stop_gradient(rounding)
 
     def increment_between(self, y: BundleElement, y_next: BundleElement) -> AlgebraPair:

@@ -89,6 +89,14 @@ def _eye_plus(alpha, beta, gamma, u):
     return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
 
 
+def _rodrigues_terms(u, x):
+    """((sin θ/θ) u×x, ((1 − cos θ)/θ²) u×(u×x)): exp(û) x − x as two terms,
+    added to x in that order by `SO3.exp_adjoint`."""
+    a, b = _rotation_coefficients(_theta_sq(u))
+    ux, uux = _rotation_terms(u, x)
+    return a[..., None] * ux, b[..., None] * uux
+
+
 def _rotation_coefficients(t2):
     """(sin θ/θ, (1 − cos θ)/θ²), the second as ½(sin(θ/2)/(θ/2))², which
     does not cancel. Taylor branches below `_SMALL` (double where).
@@ -230,16 +238,14 @@ class SO3(AbstractRotationGroup):
     @classmethod
     def exp_adjoint(cls, u: Vector3, x: Vector3) -> Vector3:
         """exp(û) x = x + (sin θ/θ) u×x + ((1 − cos θ)/θ²) u×(u×x) (Rodrigues)."""
-        a, b = _rotation_coefficients(_theta_sq(u))
-        ux, uux = _rotation_terms(u, x)
-        return x + a[..., None] * ux + b[..., None] * uux
+        first, second = _rodrigues_terms(u, x)
+        return x + first + second
 
     @classmethod
     def exp_adjoint_change(cls, u: Vector3, x: Vector3) -> Vector3:
         """exp(û) x − x = (sin θ/θ) u×x + ((1 − cos θ)/θ²) u×(u×x)."""
-        a, b = _rotation_coefficients(_theta_sq(u))
-        ux, uux = _rotation_terms(u, x)
-        return a[..., None] * ux + b[..., None] * uux
+        first, second = _rodrigues_terms(u, x)
+        return first + second
 
     @classmethod
     def inverse_shifted_ad(cls, u: Vector3, v: Vector3, alpha: float) -> Vector3:
@@ -287,9 +293,7 @@ class SO3(AbstractRotationGroup):
         rigid body's motion u·x is the same every step (u = hΩ, x = Π:
         2hH), so its rounding is too, and |x| drifted by it steadily
         (`benchmarks/round_off.py`)."""
-        k = 4.0 / (4.0 + _theta_sq(u))
-        ux, uux = _rotation_terms(u, x)
-        return x + k[..., None] * (ux + 0.5 * uux)
+        return x + cls.cayley_adjoint_change(u, x)
 
     @classmethod
     def cayley_adjoint_change(cls, u: Vector3, x: Vector3) -> Vector3:
