@@ -37,6 +37,8 @@ Tables:
 - `round_off`, `round_off_cost`: `round_off.json`, the growth of the
   invariants' errors over long runs and what solving the stages to
   round-off costs.
+- `energy_drift`: `energy_drift.json`, the signed energy drift a step of
+  SV at the round-off limit, and how much of it the initial state sets.
 - `decision`: the rows of `accuracy`, with the method to pick (the
   fastest run that reached the target; the hand-written kernel left out,
   it is not something a user calls), the runner-up, and the fastest
@@ -66,6 +68,7 @@ DOCUMENTS = {
         "long_time",
         "round_off",
         "round_off_cost",
+        "energy_drift",
         "stability",
         "throughput",
         "against_scan",
@@ -339,6 +342,40 @@ def round_off_cost_table(_entries=None, root: Path | None = None) -> str:
         )
     headers = ["method", "trajectories", "device", "round-off, ns", "tolerance, ns", "round-off / tolerance"]
     return _table([*headers, "iterations a step, round-off", "tolerance"], rows)
+
+
+def energy_drift_table(_entries=None, root: Path | None = None) -> str:
+    """`energy_drift.py`: per run, the mean over the batch of each
+    trajectory's signed drift a step (energy and the momentum norm squared, relative) with its
+    standard error; for a run from momenta moved by one ulp, the correlation
+    of its trajectories' energy drifts with those of the run it repeats, and
+    their spread split into the part both share and the noise."""
+    data = results_file("energy_drift.json", root)
+    pairs = {(p["method"], p["h"], p["seed"]): p for p in data["pairs"]}
+
+    def drift(summary):
+        return f"{summary['mean']:+.1e} ± {summary['standard_error']:.1e}"
+
+    rows = []
+    for r in data["runs"]:
+        pair = pairs.get((r["method"], r["h"], r["seed"])) if r["perturbed"] else None
+        repeat = "–" if pair is None else f"{pair['correlation']:.2f}, {pair['shared']:.1e}, {pair['noise']:.1e}"
+        states = f"set {r['seed']}" + (", one ulp off" if r["perturbed"] else "")
+        rows.append(
+            [
+                r["method"],
+                f"{r['h']:g}",
+                states,
+                str(r["batch"]),
+                f"{r['steps']:.0e}",
+                drift(r["energy"]),
+                drift(r["momentum_norm_sq"]),
+                repeat,
+            ]
+        )
+    headers = ["method", "h", "initial states", "trajectories", "steps", "energy drift a step", "momentum norm² drift a step"]
+    table = _table([*headers, "against the same set: correlation, shared spread, noise"], rows)
+    return f"{_measured_on(data)}\n\n{table}"
 
 
 def work_precision_table(_entries=None, root: Path | None = None) -> str:
@@ -694,6 +731,7 @@ TABLES = {
     "stage_layout": stage_layout_table,
     "round_off": round_off_table,
     "round_off_cost": round_off_cost_table,
+    "energy_drift": energy_drift_table,
     "work_precision": work_precision_table,
     "long_time": long_time_table,
     "heavy_top": heavy_top_table,
