@@ -17,12 +17,13 @@ the step number.
 - The same for |Π|², which the rotation of Π keeps in exact arithmetic:
   whether a drift moves |Π| or the energy at fixed |Π|.
 - How much of each trajectory's drift its initial state sets: the first set
-  run again from momenta moved by one ulp (from the first step on, the
-  rounding is a different one), at several h. The two runs' drifts per
-  trajectory are correlated (near 0 where rounding alone makes them, near 1
-  where the initial state does: the method's truncation, or a rounding that
-  repeats along the motion), and their spread splits into noise
-  (var(difference)/2) and the part both runs share.
+  run again from momenta scaled by 1 + ε, a move of one or two ulps (from
+  the first step on, the rounding is a different one), at several h. The
+  two runs' drifts per trajectory are correlated (near 0 where rounding
+  alone makes them, near 1 where the initial state does: the method's
+  truncation, or a rounding that repeats along the motion), and their
+  spread splits into noise (var(difference)/2) and the part both runs
+  share.
 
     python benchmarks/energy_drift.py
     python benchmarks/energy_drift.py --quick

@@ -347,7 +347,7 @@ def round_off_cost_table(_entries=None, root: Path | None = None) -> str:
 def energy_drift_table(_entries=None, root: Path | None = None) -> str:
     """`energy_drift.py`: per run, the mean over the batch of each
     trajectory's signed drift a step (energy and the momentum norm squared, relative) with its
-    standard error; for a run from momenta moved by one ulp, the correlation
+    standard error; for a run from momenta scaled by 1 + ε (one or two ulps), the correlation
     of its trajectories' energy drifts with those of the run it repeats, and
     their spread split into the part both share and the noise."""
     data = results_file("energy_drift.json", root)
