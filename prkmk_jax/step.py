@@ -73,9 +73,10 @@ class PRKMK(AbstractMethod):
       step's increment h·Σ bᵢKᵢ is then computed exactly and rounded once
       (`exact_sums`): rounded by the stages' own formula, of which they are
       a fixed point, its error would lean the same way at every step, a
-      bias that overtakes the random walk over millions of steps. A smaller
-      bias may remain from the rounding of the coordinate map itself
-      (`benchmarks/round_off.py` measures the growth).
+      bias that overtakes the random walk over millions of steps. A far
+      smaller drift remains, of one sign on the free body
+      (`benchmarks/energy_drift.py` measures its sign and size,
+      `benchmarks/round_off.py` the growth).
       `"tolerance"`: it stops at `rtol`/`atol`, a few iterations a step
       sooner. `benchmarks/round_off.py` measures both: the growth exponent
       and the cost.
