@@ -710,6 +710,7 @@ OTHER_SOURCES = (
     "gradients.json",
     "ensembles.json",
     "round_off.json",
+    "energy_drift.json",
     "work_precision.json",
     "long_time.json",
     "heavy_top.json",
