@@ -18,13 +18,15 @@ undone and differentiated sub-flow by sub-flow instead
 `ReversibleAdjoint` for `diffrax.diffeqsolve` with `PRKMKSolver`.
 """
 
+import dataclasses
+
 import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .made_of_steps import Adjoint
+from .made_of_steps import AbstractMadeOfSteps, Adjoint
 from .method import LOW_PRECISION_EPS, RESULTS, AbstractMethod, counted_start, counted_step, first_failure, largest_entry_difference
 from .solver import PRKMKSolver, _user_clock
 from .splitting import Splitting
@@ -85,6 +87,19 @@ def undoing_method(method: AbstractMethod) -> AbstractMethod:
         f"assume_symmetric_base=True); got a {type(method).__name__} that is none of these (a Composition of a base that "
         "is not symmetric: compose Symmetrized(base) instead)."
     )
+
+
+def summed_plainly(method: AbstractMethod) -> AbstractMethod:
+    """`method` with each PRKMK method in it taking its step's product as it
+    is (`compensated_sum=False`). The backward pass undoes and differentiates
+    steps with it: the compensation is carried by the forward pass only, the
+    undone states are checked against the kept ones, and the step's
+    derivative does not depend on how its change is added."""
+    if isinstance(method, PRKMK):
+        return dataclasses.replace(method, compensated_sum=False)
+    if isinstance(method, AbstractMadeOfSteps):
+        return eqx.tree_at(lambda m: m.method, method, summed_plainly(method.method))
+    return method
 
 
 def _chunk_steps(gradient: ReversibleGradient, save_every: int) -> int:
@@ -177,6 +192,7 @@ def _step_back(method, undo, params_dynamic, params_static, t_start, t_end, dt, 
     the first failure). The parameters are (args, vector field), split into
     the arrays differentiated and the rest."""
     args, vector_field = eqx.combine(params_dynamic, params_static)
+    method, undo = summed_plainly(method), summed_plainly(undo)
     dtype = jnp.result_type(*jax.tree.leaves(y_next))
     if isinstance(method, Splitting) and jnp.finfo(dtype).eps <= LOW_PRECISION_EPS:
         # Undone and differentiated from its end, each sub-flow once.

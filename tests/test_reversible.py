@@ -3,6 +3,8 @@ the stored steps and to finite differences, for every family of methods
 that can be undone; memory that does not grow with the number of steps;
 closures, vmap, float32 and refusals."""
 
+import dataclasses
+
 import diffrax
 import equinox as eqx
 import jax
@@ -11,6 +13,8 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
+from prkmk_jax.made_of_steps import AbstractMadeOfSteps
+from prkmk_jax.reversible import summed_plainly
 from prkmk_jax.scenes import ForcedParameters, ForcedRigidBody, FreeRigidBody, HarmonicTorque, HeavyTop, TopParameters, random_rotation
 
 FREE, TOP = FreeRigidBody(), HeavyTop()
@@ -64,6 +68,26 @@ def test_reversible_gradient_equals_the_stored_one(name):
     for checkpoint_every in (None, 5) if name in list(METHODS)[:2] else (None,):
         reversible = _gradients(method, field, args, gradient=pk.ReversibleGradient(checkpoint_every))
         assert _relative_gap(stored, reversible) <= 1e-10, (checkpoint_every, _relative_gap(stored, reversible))
+
+
+@pytest.mark.parametrize("name", METHODS)
+def test_the_backward_pass_sums_every_prkmk_step_plainly(name):
+    """The methods the backward pass undoes and differentiates with: the
+    same, every PRKMK method in them (however nested) with
+    compensated_sum=False."""
+    _, method, _ = METHODS[name]
+    plain = summed_plainly(method)
+
+    def prkmk_parts(m):
+        return [m] if isinstance(m, pk.PRKMK) else prkmk_parts(m.method) if isinstance(m, AbstractMadeOfSteps) else []
+
+    originals, plains = prkmk_parts(method), prkmk_parts(plain)
+    assert len(plains) == len(originals)
+    assert all(p.compensated_sum is False for p in plains)
+    assert all(eqx.tree_equal(dataclasses.replace(o, compensated_sum=False), p) is True for o, p in zip(originals, plains))
+    assert type(plain) is type(method)
+    if not originals:
+        assert plain is method
 
 
 def test_a_stretch_between_kept_states_is_the_largest_divisor_of_save_every():
