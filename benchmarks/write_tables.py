@@ -39,6 +39,8 @@ Tables:
   round-off costs.
 - `energy_drift`: `energy_drift.json`, the signed energy drift a step of
   SV at the round-off limit, and how much of it the initial state sets.
+- `drift_emulation`: `drift_emulation.json`, the same drift of SV Cayley
+  emulated in NumPy with parts of the step in extended precision.
 - `decision`: the rows of `accuracy`, with the method to pick (the
   fastest run that reached the target; the hand-written kernel left out,
   it is not something a user calls), the runner-up, and the fastest
@@ -69,6 +71,7 @@ DOCUMENTS = {
         "round_off",
         "round_off_cost",
         "energy_drift",
+        "drift_emulation",
         "stability",
         "throughput",
         "against_scan",
@@ -376,6 +379,33 @@ def energy_drift_table(_entries=None, root: Path | None = None) -> str:
     headers = ["method", "h", "initial states", "trajectories", "steps", "energy drift a step", "momentum norm² drift a step"]
     table = _table([*headers, "against the same set: correlation, shared spread, noise"], rows)
     return f"{_measured_on(data)}\n\n{table}"
+
+
+def drift_emulation_table(_entries=None, root: Path | None = None) -> str:
+    """`drift_emulation.py`: per variant (the part of the step computed in
+    extended precision) and set of initial states, the mean over the batch
+    of each trajectory's signed energy drift a step with its standard error;
+    and the spread of the trajectories' drifts, averaged over the sets."""
+    data = results_file("drift_emulation.json", root)
+    seeds = sorted({r["seed"] for r in data["runs"]})
+    variants = list(dict.fromkeys(r["variant"] for r in data["runs"]))
+    runs = {(r["variant"], r["seed"]): r for r in data["runs"]}
+    first = data["runs"][0]
+    rows = []
+    for variant in variants:
+        cells = [variant]
+        for seed in seeds:
+            r = runs.get((variant, seed))
+            cells.append("–" if r is None else f"{r['mean']:+.1e} ± {r['standard_error']:.1e}")
+        spreads = [runs[(variant, seed)]["spread"] for seed in seeds if (variant, seed) in runs]
+        cells.append(f"{sum(spreads) / len(spreads):.1e}")
+        rows.append(cells)
+    headers = ["computed in long double", *(f"energy drift a step, set {seed}" for seed in seeds), "spread"]
+    intro = (
+        f"{_measured_on(data)} {first['batch']} trajectories, {first['steps']:.0e} steps of h = {data['step']:g} each; "
+        f"the float64 emulation's first step is {data['library_check_eps']:.1f} eps from the library's at most."
+    )
+    return f"{intro}\n\n{_table(headers, rows)}"
 
 
 def work_precision_table(_entries=None, root: Path | None = None) -> str:
@@ -711,6 +741,7 @@ OTHER_SOURCES = (
     "ensembles.json",
     "round_off.json",
     "energy_drift.json",
+    "drift_emulation.json",
     "work_precision.json",
     "long_time.json",
     "heavy_top.json",
@@ -733,6 +764,7 @@ TABLES = {
     "round_off": round_off_table,
     "round_off_cost": round_off_cost_table,
     "energy_drift": energy_drift_table,
+    "drift_emulation": drift_emulation_table,
     "work_precision": work_precision_table,
     "long_time": long_time_table,
     "heavy_top": heavy_top_table,

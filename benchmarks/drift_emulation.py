@@ -1,0 +1,255 @@
+"""Which rounding makes the energy drift that `energy_drift.py` measures: the
+free-body step of SV Cayley written again in NumPy, operation by operation,
+so that chosen parts of it can be computed in extended precision (NumPy's
+long double: a 64-bit significand on x86-64, 2¹¹ times float64's) while the
+rest rounds as float64 does.
+
+The step (body form, the paper's inertia; L ≡ 0, and dcay⁻¹ truncated to the
+identity, as `PRKMK` does for a method of order 2):
+
+    K₁ = I⁻¹Πₙ,   K₂ = I⁻¹(Πₙ + C(h(½K₁ + ½K₂), Πₙ)),   u = h(½K₁ + ½K₂),
+    Πₙ₊₁ = Πₙ + C(u, Πₙ),
+
+with C(w, x) = cay(−ŵ)x − x = 4/(4 + |w|²) (x×w + ½ w×(w×x)). In exact
+arithmetic the energy is kept exactly: C(u, Πₙ) is orthogonal to u, and u is
+h times the mean of I⁻¹Πₙ and I⁻¹Πₙ₊₁. Each variant below is the library's
+arithmetic (the stages iterated to round-off by its stopping rule, frozen
+per trajectory as under `vmap`, and evaluated once more; u rounded once from
+its exact value; the update summed with compensation) but for the part it
+names:
+
+- `nothing (float64)`: nothing changed. Its first step is checked against the
+  library's own step (`PRKMK`, Cayley, SV) before the runs.
+- `stages exact`: the stage equation solved in long double from the float64
+  stages (K₁ too), and u rounded once from that solution.
+- `stages refined once`: one long-double evaluation of the stage from the
+  float64 stages, u rounded once from it.
+- `stages exact, K₁ float64`: as `stages exact`, but with the float64 quotient
+  I⁻¹Πₙ for K₁ (the field at the step's start as the library computes it).
+- `stage point double-word`: the stage point Πₙ + C(U, Πₙ) at the float64
+  stages kept as an unevaluated sum of two float64 (its rounding error
+  carried), U's own rounding added to first order, and the field applied to
+  both parts (linear here): what a refinement that neither evaluates the
+  field nor the rotation in extended precision could do.
+- `update exact`: the update's change C(u, Πₙ) computed in long double and
+  rounded once.
+
+Each run: `--batch` random initial states (unit |Π| in a random direction, a
+seed per set), `--steps` steps of h = 0.1; each trajectory's drift is the
+least-squares slope of its signed relative energy error (computed in long
+double) against the step number. Reported: the mean over the batch with its
+standard error, and the spread (standard deviation) of the trajectories'
+drifts, which over 10⁵ steps is mostly the random walk of the rounding.
+
+    python benchmarks/drift_emulation.py --jobs 2       # about 20 min on two cores
+    python benchmarks/drift_emulation.py --quick
+"""
+
+import json
+import multiprocessing
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+
+import _common as C
+
+VARIANTS = (
+    "nothing (float64)",
+    "stages exact",
+    "stages refined once",
+    "stages exact, K₁ float64",
+    "stage point double-word",
+    "update exact",
+)
+SEEDS = (0, 1)
+STEP = 0.1
+INERTIA = (7 / 8, 5 / 8, 1 / 4)
+SAVES = 200
+EXACT_EVALUATIONS = 6
+"""Long-double evaluations that solve the stage from the float64 stages: each
+gains at least log10(1/(h·|I⁻¹|·|Π|)) ≈ 0.7 digits at h = 0.1 (2h·4 ≤ 0.2 here
+for |Π| = 1), from float64's round-off down to long double's."""
+TOLERANCE = max(1e-12, 50 * float(np.finfo(np.float64).eps))
+LONG = np.longdouble
+
+
+def _cross(a, b):
+    return np.stack([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def _rotation_change(w, x):
+    """cay(−ŵ)x − x, in the arithmetic of w and x (float64 or long double)."""
+    m = -w
+    theta_sq = m[0] * m[0] + m[1] * m[1] + m[2] * m[2]
+    mx = _cross(m, x)
+    return 4.0 / (4.0 + theta_sq) * (mx + 0.5 * _cross(m, mx))
+
+
+def _two_sum(a, b):
+    total = a + b
+    b_virtual = total - a
+    return total, (a - (total - b_virtual)) + (b - b_virtual)
+
+
+def _long(x):
+    return np.asarray(x, LONG)
+
+
+def _rounded_once(h, k1, k2):
+    """h(½K₁ + ½K₂) from long-double (or float64) slopes, rounded once to float64."""
+    return (_long(h) * (_long(k1) + _long(k2)) * LONG(0.5)).astype(np.float64)
+
+
+def _stages_float64(momentum, inertia, h):
+    """The library's stage solve: (K₁, K₂, iterations of the batch)."""
+    k1 = momentum / inertia
+
+    def stage(k2):
+        return (momentum + _rotation_change(h * (0.5 * k1 + 0.5 * k2), momentum)) / inertia
+
+    k2 = k1.copy()
+    batch = momentum.shape[1]
+    error, previous = np.full(batch, np.inf), np.full(batch, np.inf)
+    active = np.ones(batch, bool)
+    iterations = 0
+    while active.any() and iterations < 100:
+        new = stage(k2)
+        increment = np.max(np.abs(k2 - new) / (TOLERANCE + TOLERANCE * np.abs(new)), axis=0)
+        k2 = np.where(active, new, k2)
+        previous, error = np.where(active, error, previous), np.where(active, increment, error)
+        active &= (error >= 1) | ((error > 0) & (error < previous))
+        iterations += 1
+    return k1, stage(k2), iterations
+
+
+def _stages_long(momentum, inertia, h, k1, k2, evaluations):
+    """`evaluations` long-double evaluations of the stage from K₂ for the given K₁."""
+    p, i, hl, k1 = _long(momentum), _long(inertia), _long(h), _long(k1)
+    k2 = _long(k2)
+    for _ in range(evaluations):
+        k2 = (p + _rotation_change(hl * (LONG(0.5) * k1 + LONG(0.5) * k2), p)) / i
+    return k1, k2
+
+
+def step(variant, momentum, compensation, inertia, h):
+    """One step of `variant` from (Πₙ, its compensation): (Πₙ₊₁, compensation, iterations)."""
+    k1, k2, iterations = _stages_float64(momentum, inertia, h)
+    if variant in ("stages exact", "stages refined once"):
+        evaluations = EXACT_EVALUATIONS if variant == "stages exact" else 1
+        k1, k2 = _stages_long(momentum, inertia, h, _long(momentum) / _long(inertia), k2, evaluations)
+    elif variant == "stages exact, K₁ float64":
+        k1, k2 = _stages_long(momentum, inertia, h, k1, k2, EXACT_EVALUATIONS)
+    elif variant == "stage point double-word":
+        exact = _long(h) * (_long(k1) + _long(k2)) * LONG(0.5)
+        high = exact.astype(np.float64)
+        low = (exact - _long(high)).astype(np.float64)
+        point_change = _rotation_change(high, momentum) + _cross(momentum, low)  # C(U, Πₙ) to first order in U's low part
+        point_high, point_low = _two_sum(momentum, point_change)
+        k2 = _long(point_high / inertia) + _long(point_low / inertia)
+    u = _rounded_once(h, k1, k2)
+    if variant == "update exact":
+        change = _rotation_change(_long(u), _long(momentum)).astype(np.float64)
+    else:
+        change = _rotation_change(u, momentum)
+    total, lost = _two_sum(momentum, change)
+    momentum, compensation = _two_sum(total, lost + compensation)
+    return momentum, compensation, iterations
+
+
+def initial_momenta(batch, seed):
+    rng = np.random.default_rng(seed)
+    momenta = rng.normal(size=(3, batch))
+    return momenta / np.linalg.norm(momenta, axis=0)
+
+
+def energy(momentum, inertia):
+    return 0.5 * np.sum(_long(momentum) ** 2 / _long(inertia), axis=0)
+
+
+def run(variant, seed, steps, batch):
+    """Per-trajectory energy drifts a step of one variant and set of initial states."""
+    inertia = np.asarray(INERTIA)[:, None]
+    momentum = initial_momenta(batch, seed)
+    compensation = np.zeros_like(momentum)
+    start_energy = energy(momentum, inertia)
+    every = max(steps // SAVES, 1)
+    errors, iterations = [], 0
+    start = time.perf_counter()
+    for n in range(steps):
+        if n % every == 0:
+            errors.append(np.asarray(energy(momentum, inertia) / start_energy - 1, np.float64))
+        momentum, compensation, count = step(variant, momentum, compensation, inertia, STEP)
+        iterations += count
+    drifts = np.polyfit(every * np.arange(len(errors)), np.array(errors), 1)[0]
+    return dict(
+        variant=variant,
+        seed=seed,
+        steps=steps,
+        batch=batch,
+        mean=float(np.mean(drifts)),
+        standard_error=float(np.std(drifts) / np.sqrt(batch)),
+        spread=float(np.std(drifts)),
+        batch_iterations_a_step=iterations / steps,
+        seconds=time.perf_counter() - start,
+    )
+
+
+def library_check(batch=16):
+    """The largest difference, over `batch` states, between one float64 step
+    written here and the library's SV Cayley step, in units of float64's eps."""
+    import jax
+    import jax.numpy as jnp
+
+    import prkmk_jax as pk
+    from prkmk_jax.scenes import FreeRigidBody
+
+    scene = FreeRigidBody()
+    method = pk.PRKMK(scene.bundle, pk.Cayley(), pk.stormer_verlet, form="body")
+    momenta = initial_momenta(batch, seed=99)
+    y0 = pk.BundleElement(pk.SO3(jnp.broadcast_to(jnp.eye(3), (batch, 3, 3))), jnp.asarray(momenta.T))
+    inertia = jnp.asarray(INERTIA)
+    one_step = jax.jit(jax.vmap(lambda y: pk.integrate(method, scene, y, 0.0, STEP, 1, inertia, save_every=1).ys.fiber[-1]))
+    library = np.asarray(one_step(y0)).T
+    here = step("nothing (float64)", momenta, np.zeros_like(momenta), np.asarray(INERTIA)[:, None], STEP)[0]
+    return float(np.max(np.abs(library - here)) / np.finfo(np.float64).eps)
+
+
+def _case(arguments):
+    return run(*arguments)
+
+
+def main(argv=None):
+    args, out = C.cli(__doc__, argv, _arguments)
+    if np.finfo(LONG).nmant < 60:
+        bits = np.finfo(LONG).nmant
+        raise SystemExit(f"NumPy's long double here has {bits} stored significand bits; this emulation needs x86's 64-bit one.")
+    steps, batch, seeds = (2_000, 64, SEEDS[:1]) if args.quick else (int(args.steps), args.batch, SEEDS)
+    check = library_check()
+    print(f"one float64 step here against the library's: {check:.1f} eps at most")
+    if check > 4:
+        raise SystemExit("the emulated step no longer matches the library's (more than 4 eps apart): update it first.")
+    cases = [(variant, seed, steps, batch) for seed in seeds for variant in VARIANTS]
+    rows = []
+    # Spawned, not forked: this process has started JAX's threads (the check).
+    with ProcessPoolExecutor(max_workers=args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        for row in pool.map(_case, cases):
+            rows.append(row)
+            print(
+                f"{row['variant']:26s} set {row['seed']}: energy {row['mean']:+.2e} ± {row['standard_error']:.1e} a step, "
+                f"spread {row['spread']:.1e}  ({row['seconds']:.0f} s)",
+                flush=True,
+            )
+    with open(out / "drift_emulation.json", "w") as f:
+        json.dump(dict(machine=C.machine(), library_check_eps=check, step=STEP, runs=rows), f, indent=1)
+
+
+def _arguments(parser):
+    parser.add_argument("--steps", type=float, default=1e5, help="steps of each run (default 1e5)")
+    parser.add_argument("--batch", type=int, default=1024, help="trajectories of each run (default 1024)")
+    parser.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="runs at a time (processes)")
+
+
+if __name__ == "__main__":
+    main()
