@@ -74,9 +74,12 @@ class PRKMK(AbstractMethod):
       (`exact_sums`): rounded by the stages' own formula, of which they are
       a fixed point, its error would lean the same way at every step, a
       bias that overtakes the random walk over millions of steps. A far
-      smaller drift remains, of one sign on the free body
-      (`benchmarks/energy_drift.py` measures its sign and size,
-      `benchmarks/round_off.py` the growth).
+      smaller drift remains, from the rounding of the stage solve itself:
+      its sign follows the order of the operations, and a stage solve in
+      extended precision, which would evaluate the field in it, removes it
+      (`benchmarks/energy_drift.py` measures it on the free body,
+      `benchmarks/drift_emulation.py` traces it, `benchmarks/round_off.py`
+      fits the growth).
       `"tolerance"`: it stops at `rtol`/`atol`, a few iterations a step
       sooner. `benchmarks/round_off.py` measures both: the growth exponent
       and the cost.
