@@ -41,7 +41,17 @@ double) against the step number. Reported: the mean over the batch with its
 standard error, and the spread (standard deviation) of the trajectories'
 drifts, which over 10⁵ steps is mostly the random walk of the rounding.
 
-    python benchmarks/drift_emulation.py --jobs 2       # about 20 min on two cores
+One-ulp pairs (`--part pairs`), as `energy_drift.py` runs them for the
+library: `nothing (float64)` and `stages exact` at h = 0.15, where the
+library's drifts are mostly set by the initial state, from set 0 and again
+from its momenta scaled by 1 + ε. The correlation of the two runs' drifts
+per trajectory, and their spread split into noise and the part both runs
+share, say whether the stage solve's rounding is also what makes each
+trajectory drift its own way (the drifts that lift the growth exponents
+above a random walk's).
+
+    python benchmarks/drift_emulation.py --jobs 2       # about 40 min on two cores
+    python benchmarks/drift_emulation.py --part pairs   # the pairs again, the rest kept
     python benchmarks/drift_emulation.py --quick
 """
 
@@ -65,6 +75,10 @@ VARIANTS = (
 )
 SEEDS = (0, 1)
 STEP = 0.1
+PAIR_VARIANTS = ("nothing (float64)", "stages exact")
+PAIR_STEP = 0.15
+PAIR_STEPS = 200_000
+PAIR_BATCH = 256
 INERTIA = (7 / 8, 5 / 8, 1 / 4)
 SAVES = 200
 EXACT_EVALUATIONS = 6
@@ -169,10 +183,14 @@ def energy(momentum, inertia):
     return 0.5 * np.sum(_long(momentum) ** 2 / _long(inertia), axis=0)
 
 
-def run(variant, seed, steps, batch):
-    """Per-trajectory energy drifts a step of one variant and set of initial states."""
+def run(variant, seed, steps, batch, h=STEP, perturbed=False):
+    """The energy drifts a step of one variant and set of initial states (its
+    momenta scaled by 1 + ε where `perturbed`): their summary, and with
+    `perturbed` given, each trajectory's."""
     inertia = np.asarray(INERTIA)[:, None]
     momentum = initial_momenta(batch, seed)
+    if perturbed is not None and perturbed:
+        momentum = momentum * (1 + np.finfo(np.float64).eps)
     compensation = np.zeros_like(momentum)
     start_energy = energy(momentum, inertia)
     every = max(steps // SAVES, 1)
@@ -181,19 +199,37 @@ def run(variant, seed, steps, batch):
     for n in range(steps):
         if n % every == 0:
             errors.append(np.asarray(energy(momentum, inertia) / start_energy - 1, np.float64))
-        momentum, compensation, count = step(variant, momentum, compensation, inertia, STEP)
+        momentum, compensation, count = step(variant, momentum, compensation, inertia, h)
         iterations += count
     drifts = np.polyfit(every * np.arange(len(errors)), np.array(errors), 1)[0]
-    return dict(
+    row = dict(
         variant=variant,
         seed=seed,
         steps=steps,
         batch=batch,
+        h=h,
         mean=float(np.mean(drifts)),
         standard_error=float(np.std(drifts) / np.sqrt(batch)),
         spread=float(np.std(drifts)),
         batch_iterations_a_step=iterations / steps,
         seconds=time.perf_counter() - start,
+    )
+    if perturbed is not None:
+        row.update(perturbed=perturbed, trajectory_drifts=[float(x) for x in drifts])
+    return row
+
+
+def pair_statistics(first, second):
+    """The correlation of two runs' per-trajectory drifts, their spread, its
+    noise (what differs between the runs) and the part both share."""
+    first, second = np.asarray(first), np.asarray(second)
+    spread = float(np.sqrt((np.var(first) + np.var(second)) / 2))
+    noise = float(np.std(first - second) / np.sqrt(2))
+    return dict(
+        correlation=float(np.corrcoef(first, second)[0, 1]),
+        spread=spread,
+        noise=noise,
+        shared=float(np.sqrt(max(spread**2 - noise**2, 0.0))),
     )
 
 
@@ -221,35 +257,65 @@ def _case(arguments):
     return run(*arguments)
 
 
+def _report(row):
+    label = f"set {row['seed']}" + (", one ulp off" if row.get("perturbed") else "")
+    print(
+        f"{row['variant']:26s} h = {row['h']:<5g}{label}: energy {row['mean']:+.2e} ± {row['standard_error']:.1e} a step, "
+        f"spread {row['spread']:.1e}  ({row['seconds']:.0f} s)",
+        flush=True,
+    )
+
+
 def main(argv=None):
     args, out = C.cli(__doc__, argv, _arguments)
     if np.finfo(LONG).nmant < 60:
         bits = np.finfo(LONG).nmant
         raise SystemExit(f"NumPy's long double here has {bits} stored significand bits; this emulation needs x86's 64-bit one.")
     steps, batch, seeds = (2_000, 64, SEEDS[:1]) if args.quick else (int(args.steps), args.batch, SEEDS)
+    pair_steps, pair_batch = (2_000, 64) if args.quick else (PAIR_STEPS, PAIR_BATCH)
     check = library_check()
     print(f"one float64 step here against the library's: {check:.1f} eps at most")
     if check > 4:
         raise SystemExit("the emulated step no longer matches the library's (more than 4 eps apart): update it first.")
-    cases = [(variant, seed, steps, batch) for seed in seeds for variant in VARIANTS]
-    rows = []
+    path = out / "drift_emulation.json"
+    kept = json.loads(path.read_text()) if path.exists() and args.part != "both" else {}
+    cases = []
+    if args.part in ("drift", "both"):
+        cases += [(variant, seed, steps, batch) for seed in seeds for variant in VARIANTS]
+    if args.part in ("pairs", "both"):
+        cases += [(variant, 0, pair_steps, pair_batch, PAIR_STEP, perturbed) for variant in PAIR_VARIANTS for perturbed in (False, True)]
+    rows, pair_runs = [], []
     # Spawned, not forked: this process has started JAX's threads (the check).
     with ProcessPoolExecutor(max_workers=args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
         for row in pool.map(_case, cases):
-            rows.append(row)
-            print(
-                f"{row['variant']:26s} set {row['seed']}: energy {row['mean']:+.2e} ± {row['standard_error']:.1e} a step, "
-                f"spread {row['spread']:.1e}  ({row['seconds']:.0f} s)",
-                flush=True,
-            )
-    with open(out / "drift_emulation.json", "w") as f:
-        json.dump(dict(machine=C.machine(), library_check_eps=check, step=STEP, runs=rows), f, indent=1)
+            (rows if "perturbed" not in row else pair_runs).append(row)
+            _report(row)
+    pairs = []
+    for variant in PAIR_VARIANTS:
+        runs = {r["perturbed"]: r for r in pair_runs if r["variant"] == variant}
+        if len(runs) == 2:
+            statistics = pair_statistics(runs[False]["trajectory_drifts"], runs[True]["trajectory_drifts"])
+            pairs.append(dict(variant=variant, h=PAIR_STEP, seed=0, steps=pair_steps, batch=pair_batch, **statistics))
+            correlation, shared, noise = statistics["correlation"], statistics["shared"], statistics["noise"]
+            print(f"one-ulp pair, {variant}: correlation {correlation:.2f}, shared {shared:.1e}, noise {noise:.1e}")
+    results = dict(
+        machine=C.machine(),
+        library_check_eps=check,
+        step=STEP,
+        runs=rows or kept.get("runs", []),
+        pair_runs=pair_runs or kept.get("pair_runs", []),
+        pairs=pairs or kept.get("pairs", []),
+    )
+    path.write_text(json.dumps(results, indent=1))
 
 
 def _arguments(parser):
     parser.add_argument("--steps", type=float, default=1e5, help="steps of each run (default 1e5)")
     parser.add_argument("--batch", type=int, default=1024, help="trajectories of each run (default 1024)")
     parser.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="runs at a time (processes)")
+    parser.add_argument(
+        "--part", choices=("drift", "pairs", "both"), default="both", help="which runs (the other part is kept from --out's results file)"
+    )
 
 
 if __name__ == "__main__":

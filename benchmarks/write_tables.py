@@ -40,7 +40,8 @@ Tables:
 - `energy_drift`: `energy_drift.json`, the signed energy drift a step of
   SV at the round-off limit, and how much of it the initial state sets.
 - `drift_emulation`: `drift_emulation.json`, the same drift of SV Cayley
-  emulated in NumPy with parts of the step in extended precision.
+  emulated in NumPy with parts of the step in extended precision, and its
+  one-ulp pairs.
 - `decision`: the rows of `accuracy`, with the method to pick (the
   fastest run that reached the target; the hand-written kernel left out,
   it is not something a user calls), the runner-up, and the fastest
@@ -385,7 +386,10 @@ def drift_emulation_table(_entries=None, root: Path | None = None) -> str:
     """`drift_emulation.py`: per variant (the part of the step computed in
     extended precision) and set of initial states, the mean over the batch
     of each trajectory's signed energy drift a step with its standard error;
-    and the spread of the trajectories' drifts, averaged over the sets."""
+    and the spread of the trajectories' drifts, averaged over the sets. Then
+    the one-ulp pairs: each run's mean drift, the correlation of the two
+    runs' drifts per trajectory, and their spread split into the part both
+    share and the noise."""
     data = results_file("drift_emulation.json", root)
     seeds = sorted({r["seed"] for r in data["runs"]})
     variants = list(dict.fromkeys(r["variant"] for r in data["runs"]))
@@ -405,7 +409,27 @@ def drift_emulation_table(_entries=None, root: Path | None = None) -> str:
         f"{_measured_on(data)} {first['batch']} trajectories, {first['steps']:.0e} steps of h = {data['step']:g} each; "
         f"the float64 emulation's first step is {data['library_check_eps']:.1f} eps from the library's at most."
     )
-    return f"{intro}\n\n{_table(headers, rows)}"
+    text = f"{intro}\n\n{_table(headers, rows)}"
+    if data.get("pairs"):
+        runs_of = {(r["variant"], r["perturbed"]): r for r in data["pair_runs"]}
+        pair_rows = []
+        for p in data["pairs"]:
+            drifts = [runs_of[(p["variant"], perturbed)] for perturbed in (False, True)]
+            pair_rows.append(
+                [
+                    p["variant"],
+                    f"{p['h']:g}",
+                    str(p["batch"]),
+                    f"{p['steps']:.0e}",
+                    *(f"{r['mean']:+.1e} ± {r['standard_error']:.1e}" for r in drifts),
+                    f"{p['correlation']:.2f}",
+                    f"{p['shared']:.1e}",
+                    f"{p['noise']:.1e}",
+                ]
+            )
+        pair_headers = ["computed in long double", "h", "trajectories", "steps", "energy drift a step, set 0", "one ulp off"]
+        text += "\n\n" + _table([*pair_headers, "correlation", "shared spread", "noise"], pair_rows)
+    return text
 
 
 def work_precision_table(_entries=None, root: Path | None = None) -> str:
