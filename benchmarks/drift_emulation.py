@@ -62,6 +62,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
+from energy_drift import pair_statistics
 
 import _common as C
 
@@ -219,20 +220,6 @@ def run(variant, seed, steps, batch, h=STEP, perturbed=False):
     return row
 
 
-def pair_statistics(first, second):
-    """The correlation of two runs' per-trajectory drifts, their spread, its
-    noise (what differs between the runs) and the part both share."""
-    first, second = np.asarray(first), np.asarray(second)
-    spread = float(np.sqrt((np.var(first) + np.var(second)) / 2))
-    noise = float(np.std(first - second) / np.sqrt(2))
-    return dict(
-        correlation=float(np.corrcoef(first, second)[0, 1]),
-        spread=spread,
-        noise=noise,
-        shared=float(np.sqrt(max(spread**2 - noise**2, 0.0))),
-    )
-
-
 def library_check(batch=16):
     """The largest difference, over `batch` states, between one float64 step
     written here and the library's SV Cayley step, in units of float64's eps."""
@@ -294,7 +281,7 @@ def main(argv=None):
     for variant in PAIR_VARIANTS:
         runs = {r["perturbed"]: r for r in pair_runs if r["variant"] == variant}
         if len(runs) == 2:
-            statistics = pair_statistics(runs[False]["trajectory_drifts"], runs[True]["trajectory_drifts"])
+            statistics = pair_statistics(*(np.asarray(runs[perturbed]["trajectory_drifts"]) for perturbed in (False, True)))
             pairs.append(dict(variant=variant, h=PAIR_STEP, seed=0, steps=pair_steps, batch=pair_batch, **statistics))
             correlation, shared, noise = statistics["correlation"], statistics["shared"], statistics["noise"]
             print(f"one-ulp pair, {variant}: correlation {correlation:.2f}, shared {shared:.1e}, noise {noise:.1e}")
