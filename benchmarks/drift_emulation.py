@@ -65,6 +65,7 @@ import numpy as np
 from energy_drift import pair_statistics
 
 import _common as C
+from prkmk_jax.exact_sums import two_sum  # additions only: the same on NumPy arrays
 
 VARIANTS = (
     "nothing (float64)",
@@ -103,19 +104,13 @@ def _rotation_change(w, x):
     return 4.0 / (4.0 + theta_sq) * (mx + 0.5 * _cross(m, mx))
 
 
-def _two_sum(a, b):
-    total = a + b
-    b_virtual = total - a
-    return total, (a - (total - b_virtual)) + (b - b_virtual)
-
-
 def _long(x):
     return np.asarray(x, LONG)
 
 
-def _rounded_once(h, k1, k2):
-    """h(½K₁ + ½K₂) from long-double (or float64) slopes, rounded once to float64."""
-    return (_long(h) * (_long(k1) + _long(k2)) * LONG(0.5)).astype(np.float64)
+def _increment(h, k1, k2):
+    """h(½K₁ + ½K₂) in long double, from long-double (or float64) slopes."""
+    return _long(h) * (_long(k1) + _long(k2)) * LONG(0.5)
 
 
 def _stages_float64(momentum, inertia, h):
@@ -158,19 +153,19 @@ def step(variant, momentum, compensation, inertia, h):
     elif variant == "stages exact, K₁ float64":
         k1, k2 = _stages_long(momentum, inertia, h, k1, k2, EXACT_EVALUATIONS)
     elif variant == "stage point double-word":
-        exact = _long(h) * (_long(k1) + _long(k2)) * LONG(0.5)
+        exact = _increment(h, k1, k2)
         high = exact.astype(np.float64)
         low = (exact - _long(high)).astype(np.float64)
         point_change = _rotation_change(high, momentum) + _cross(momentum, low)  # C(U, Πₙ) to first order in U's low part
-        point_high, point_low = _two_sum(momentum, point_change)
+        point_high, point_low = two_sum(momentum, point_change)
         k2 = _long(point_high / inertia) + _long(point_low / inertia)
-    u = _rounded_once(h, k1, k2)
+    u = _increment(h, k1, k2).astype(np.float64)  # rounded once
     if variant == "update exact":
         change = _rotation_change(_long(u), _long(momentum)).astype(np.float64)
     else:
         change = _rotation_change(u, momentum)
-    total, lost = _two_sum(momentum, change)
-    momentum, compensation = _two_sum(total, lost + compensation)
+    total, lost = two_sum(momentum, change)
+    momentum, compensation = two_sum(total, lost + compensation)
     return momentum, compensation, iterations
 
 
@@ -184,13 +179,13 @@ def energy(momentum, inertia):
     return 0.5 * np.sum(_long(momentum) ** 2 / _long(inertia), axis=0)
 
 
-def run(variant, seed, steps, batch, h=STEP, perturbed=False):
+def run(variant, seed, steps, batch, h=STEP, perturbed=None):
     """The energy drifts a step of one variant and set of initial states (its
     momenta scaled by 1 + ε where `perturbed`): their summary, and with
     `perturbed` given, each trajectory's."""
     inertia = np.asarray(INERTIA)[:, None]
     momentum = initial_momenta(batch, seed)
-    if perturbed is not None and perturbed:
+    if perturbed:
         momentum = momentum * (1 + np.finfo(np.float64).eps)
     compensation = np.zeros_like(momentum)
     start_energy = energy(momentum, inertia)
