@@ -50,7 +50,7 @@ share, say whether the stage solve's rounding is also what makes each
 trajectory drift its own way (the drifts that lift the growth exponents
 above a random walk's).
 
-    python benchmarks/drift_emulation.py --jobs 2       # about 40 min on two cores
+    python benchmarks/drift_emulation.py --jobs 2       # both parts, two runs at a time
     python benchmarks/drift_emulation.py --part pairs   # the pairs again, the rest kept
     python benchmarks/drift_emulation.py --quick
 """
