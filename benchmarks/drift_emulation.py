@@ -34,6 +34,9 @@ names:
 - `update exact`: the update's change C(u, Πₙ) computed in long double and
   rounded once.
 
+These runs start every step's stage iteration from K₂ = K₁, as the library
+starts only its first step.
+
 Each run: `--batch` random initial states (unit |Π| in a random direction, a
 seed per set), `--steps` steps of h = 0.1; each trajectory's drift is the
 least-squares slope of its signed relative energy error (computed in long
@@ -50,16 +53,36 @@ share, say whether the stage solve's rounding is also what makes each
 trajectory drift its own way (the drifts that lift the growth exponents
 above a random walk's).
 
-    python benchmarks/drift_emulation.py --jobs 2       # both parts, two runs at a time
+The library's start (`--part start`): `nothing (float64)` and `stages
+exact` again, with each step's iteration started as `PRKMK` starts every
+step after the first, from the previous step's stages moved by the change
+of K₁ (`PRKMK.extrapolated_guesses`), and with the field as the library's
+compiled step computes it: Π times the rounded 1/I, since XLA turns a
+division by the inertia broadcast over the batch into that product. Before
+the runs, the float64 step here is started from each of 200 states of the
+library's own run (64 trajectories), with the library's carried stages
+for this start, and the share of its momenta that differ from the
+library's next ones is recorded for both starts, and for the library's
+start again with the library compiled under
+`--xla_backend_optimization_level=0`: XLA contracts products and sums
+into fused multiply-adds on CPU by default, which NumPy does not, and
+that flag turns it off.
+
+    python benchmarks/drift_emulation.py --jobs 2       # every part, two runs at a time
     python benchmarks/drift_emulation.py --part pairs   # the pairs again, the rest kept
+    python benchmarks/drift_emulation.py --part start   # the library's start again, the rest kept
+    python benchmarks/drift_emulation.py --part check   # the checks against the library alone
     python benchmarks/drift_emulation.py --quick
 """
 
 import json
 import multiprocessing
 import os
+import subprocess
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 
 import numpy as np
 from energy_drift import pair_statistics
@@ -78,6 +101,9 @@ VARIANTS = (
 SEEDS = (0, 1)
 STEP = 0.1
 PAIR_VARIANTS = ("nothing (float64)", "stages exact")
+START_VARIANTS = ("nothing (float64)", "stages exact")
+LIBRARY_CHECK_BATCH = 64
+LIBRARY_CHECK_STEPS = 200
 PAIR_STEP = 0.15
 PAIR_STEPS = 200_000
 PAIR_BATCH = 256
@@ -113,14 +139,30 @@ def _increment(h, k1, k2):
     return _long(h) * (_long(k1) + _long(k2)) * LONG(0.5)
 
 
-def _stages_float64(momentum, inertia, h):
-    """The library's stage solve: (K₁, K₂, iterations of the batch)."""
-    k1 = momentum / inertia
+def _stages_float64(momentum, inertia, h, carried=None, library_field=False):
+    """The library's stage solve: (K₁, K₂, iterations of the batch). K₂ starts
+    from K₁ (the first step's start), or with `carried` = (K₁, K₂) of the
+    previous step from K₂ + the change of K₁ since then, as `PRKMK` starts
+    every later step (`PRKMK.extrapolated_guesses`). `library_field`: I⁻¹Π as
+    the library's compiled field computes it, Π times the rounded 1/I (XLA
+    turns a division by the inertia broadcast over the batch into that
+    product); otherwise the quotient."""
+    if library_field:
+        reciprocal = 1.0 / inertia
+
+        def field(x):
+            return x * reciprocal
+    else:
+
+        def field(x):
+            return x / inertia
+
+    k1 = field(momentum)
 
     def stage(k2):
-        return (momentum + _rotation_change(h * (0.5 * k1 + 0.5 * k2), momentum)) / inertia
+        return field(momentum + _rotation_change(h * (0.5 * k1 + 0.5 * k2), momentum))
 
-    k2 = k1.copy()
+    k2 = k1.copy() if carried is None else carried[1] + (k1 - carried[0])
     batch = momentum.shape[1]
     error, previous = np.full(batch, np.inf), np.full(batch, np.inf)
     active = np.ones(batch, bool)
@@ -144,9 +186,12 @@ def _stages_long(momentum, inertia, h, k1, k2, evaluations):
     return k1, k2
 
 
-def step(variant, momentum, compensation, inertia, h):
-    """One step of `variant` from (Πₙ, its compensation): (Πₙ₊₁, compensation, iterations)."""
-    k1, k2, iterations = _stages_float64(momentum, inertia, h)
+def step(variant, momentum, compensation, inertia, h, carried=None, library_field=False):
+    """One step of `variant` from (Πₙ, its compensation): (Πₙ₊₁,
+    compensation, iterations, the float64 stages (K₁, K₂) for the next
+    step's start). `carried` and `library_field`: see `_stages_float64`."""
+    k1, k2, iterations = _stages_float64(momentum, inertia, h, carried, library_field)
+    solved = (k1, k2)
     if variant in ("stages exact", "stages refined once"):
         evaluations = EXACT_EVALUATIONS if variant == "stages exact" else 1
         k1, k2 = _stages_long(momentum, inertia, h, _long(momentum) / _long(inertia), k2, evaluations)
@@ -166,7 +211,7 @@ def step(variant, momentum, compensation, inertia, h):
         change = _rotation_change(u, momentum)
     total, lost = two_sum(momentum, change)
     momentum, compensation = two_sum(total, lost + compensation)
-    return momentum, compensation, iterations
+    return momentum, compensation, iterations, solved
 
 
 def initial_momenta(batch, seed):
@@ -179,10 +224,13 @@ def energy(momentum, inertia):
     return 0.5 * np.sum(_long(momentum) ** 2 / _long(inertia), axis=0)
 
 
-def run(variant, seed, steps, batch, h=STEP, perturbed=None):
+def run(variant, seed, steps, batch, h=STEP, perturbed=None, start="K₁"):
     """The energy drifts a step of one variant and set of initial states (its
     momenta scaled by 1 + ε where `perturbed`): their summary, and with
-    `perturbed` given, each trajectory's."""
+    `perturbed` given, each trajectory's. `start`: "K₁", every step's stage
+    iteration started from K₂ = K₁; "library", from the previous step's
+    stages, with the field as the library's compiled step computes it
+    (`_stages_float64`)."""
     inertia = np.asarray(INERTIA)[:, None]
     momentum = initial_momenta(batch, seed)
     if perturbed:
@@ -190,12 +238,14 @@ def run(variant, seed, steps, batch, h=STEP, perturbed=None):
     compensation = np.zeros_like(momentum)
     start_energy = energy(momentum, inertia)
     every = max(steps // SAVES, 1)
-    errors, iterations = [], 0
-    start = time.perf_counter()
+    errors, iterations, carried = [], 0, None
+    library = start == "library"
+    started = time.perf_counter()
     for n in range(steps):
         if n % every == 0:
             errors.append(np.asarray(energy(momentum, inertia) / start_energy - 1, np.float64))
-        momentum, compensation, count = step(variant, momentum, compensation, inertia, h)
+        momentum, compensation, count, solved = step(variant, momentum, compensation, inertia, h, carried, library)
+        carried = solved if library else None
         iterations += count
     drifts = np.polyfit(every * np.arange(len(errors)), np.array(errors), 1)[0]
     row = dict(
@@ -208,16 +258,22 @@ def run(variant, seed, steps, batch, h=STEP, perturbed=None):
         standard_error=float(np.std(drifts) / np.sqrt(batch)),
         spread=float(np.std(drifts)),
         batch_iterations_a_step=iterations / steps,
-        seconds=time.perf_counter() - start,
+        seconds=time.perf_counter() - started,
+        start=start,
     )
     if perturbed is not None:
         row.update(perturbed=perturbed, trajectory_drifts=[float(x) for x in drifts])
     return row
 
 
-def library_check(batch=16):
-    """The largest difference, over `batch` states, between one float64 step
-    written here and the library's SV Cayley step, in units of float64's eps."""
+def library_check(batch=16, steps=1, start="K₁"):
+    """How far a float64 step written here is from the library's SV Cayley
+    step from the same state, over `batch` states and `steps` steps of the
+    library's run: (the largest difference of the momenta in units of
+    float64's eps, the share of their entries that differ). Each step here
+    starts from the library's state (no compensation on either side) and,
+    for `start="library"`, from the stages the library carries (see
+    `run`)."""
     import jax
     import jax.numpy as jnp
 
@@ -227,12 +283,37 @@ def library_check(batch=16):
     scene = FreeRigidBody()
     method = pk.PRKMK(scene.bundle, pk.Cayley(), pk.stormer_verlet, form="body")
     momenta = initial_momenta(batch, seed=99)
-    y0 = pk.BundleElement(pk.SO3(jnp.broadcast_to(jnp.eye(3), (batch, 3, 3))), jnp.asarray(momenta.T))
+    y = pk.BundleElement(pk.SO3(jnp.broadcast_to(jnp.eye(3), (batch, 3, 3))), jnp.asarray(momenta.T))
     inertia = jnp.asarray(INERTIA)
-    one_step = jax.jit(jax.vmap(lambda y: pk.integrate(method, scene, y, 0.0, STEP, 1, inertia, save_every=1).ys.fiber[-1]))
-    library = np.asarray(one_step(y0)).T
-    here = step("nothing (float64)", momenta, np.zeros_like(momenta), np.asarray(INERTIA)[:, None], STEP)[0]
-    return float(np.max(np.abs(library - here)) / np.finfo(np.float64).eps)
+    carried = jax.vmap(lambda y: method.initial_carried(scene, 0.0, y, inertia))(y)
+    one_step = jax.jit(jax.vmap(lambda y, carried: method.carried_step(scene, 0.0, y, STEP, inertia, carried)))
+    differences = []
+    for _ in range(steps):
+        stages = (np.asarray(carried[0][0]).T, np.asarray(carried[1][1][0]).T) if start == "library" else None
+        momentum = np.asarray(y.fiber).T
+        library_start = start == "library"
+        here, *_ = step("nothing (float64)", momentum, np.zeros_like(momentum), np.asarray(INERTIA)[:, None], STEP, stages, library_start)
+        result = one_step(y, carried)
+        y, carried = result.y, result.carried
+        differences.append(np.asarray(y.fiber).T - here)
+    differences = np.stack(differences)
+    return float(np.max(np.abs(differences)) / np.finfo(np.float64).eps), float(np.mean(differences != 0))
+
+
+def _check_without_fused_multiply_adds():
+    """`library_check` for the library's start, with the library compiled
+    under `--xla_backend_optimization_level=0` (no fused multiply-adds, which
+    NumPy does not form either), in a process of its own."""
+    code = (
+        "import json, jax; jax.config.update('jax_enable_x64', True); import drift_emulation as D; "
+        f"print(json.dumps(D.library_check({LIBRARY_CHECK_BATCH}, {LIBRARY_CHECK_STEPS}, 'library')))"
+    )
+    environment = dict(os.environ, XLA_FLAGS="--xla_backend_optimization_level=0")
+    done = subprocess.run(
+        [sys.executable, "-c", code], env=environment, cwd=Path(__file__).parent, capture_output=True, text=True, check=True
+    )
+    largest, fraction = json.loads(done.stdout.strip().splitlines()[-1])
+    return dict(largest_eps=largest, fraction_differing=fraction)
 
 
 def _case(arguments):
@@ -241,6 +322,7 @@ def _case(arguments):
 
 def _report(row):
     label = f"set {row['seed']}" + (", one ulp off" if row.get("perturbed") else "")
+    label += ", library's start" if row["start"] == "library" else ""
     print(
         f"{row['variant']:26s} h = {row['h']:<5g}{label}: energy {row['mean']:+.2e} ± {row['standard_error']:.1e} a step, "
         f"spread {row['spread']:.1e}  ({row['seconds']:.0f} s)",
@@ -255,22 +337,37 @@ def main(argv=None):
         raise SystemExit(f"NumPy's long double here has {bits} stored significand bits; this emulation needs x86's 64-bit one.")
     steps, batch, seeds = (2_000, 64, SEEDS[:1]) if args.quick else (int(args.steps), args.batch, SEEDS)
     pair_steps, pair_batch = (2_000, 64) if args.quick else (PAIR_STEPS, PAIR_BATCH)
-    check = library_check()
+    check, _ = library_check()
     print(f"one float64 step here against the library's: {check:.1f} eps at most")
     if check > 4:
         raise SystemExit("the emulated step no longer matches the library's (more than 4 eps apart): update it first.")
+    check_steps = {
+        start: dict(zip(("largest_eps", "fraction_differing"), library_check(LIBRARY_CHECK_BATCH, LIBRARY_CHECK_STEPS, start)))
+        for start in ("K₁", "library")
+    }
+    check_steps["library, no fused multiply-adds"] = _check_without_fused_multiply_adds()
+    for start, c in check_steps.items():
+        print(
+            f"{LIBRARY_CHECK_STEPS} steps from the library's states, start {start}: "
+            f"{c['fraction_differing']:.2%} of the momenta differ, by {c['largest_eps']:.1f} eps at most"
+        )
     path = out / "drift_emulation.json"
-    kept = json.loads(path.read_text()) if path.exists() and args.part != "both" else {}
+    kept = json.loads(path.read_text()) if path.exists() and args.part != "all" else {}
     cases = []
-    if args.part in ("drift", "both"):
+    if args.part in ("drift", "all"):
         cases += [(variant, seed, steps, batch) for seed in seeds for variant in VARIANTS]
-    if args.part in ("pairs", "both"):
+    if args.part in ("pairs", "all"):
         cases += [(variant, 0, pair_steps, pair_batch, PAIR_STEP, perturbed) for variant in PAIR_VARIANTS for perturbed in (False, True)]
-    rows, pair_runs = [], []
+    if args.part in ("start", "all"):
+        cases += [(variant, seed, steps, batch, STEP, None, "library") for seed in seeds for variant in START_VARIANTS]
+    rows, pair_runs, start_runs = [], [], []
     # Spawned, not forked: this process has started JAX's threads (the check).
     with ProcessPoolExecutor(max_workers=args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
         for row in pool.map(_case, cases):
-            (rows if "perturbed" not in row else pair_runs).append(row)
+            if row["start"] == "library":
+                start_runs.append(row)
+            else:
+                (rows if "perturbed" not in row else pair_runs).append(row)
             _report(row)
     pairs = []
     for variant in PAIR_VARIANTS:
@@ -283,8 +380,10 @@ def main(argv=None):
     results = dict(
         machine=C.machine(),
         library_check_eps=check,
+        library_check_steps=dict(batch=LIBRARY_CHECK_BATCH, steps=LIBRARY_CHECK_STEPS, by_start=check_steps),
         step=STEP,
         runs=rows or kept.get("runs", []),
+        start_runs=start_runs or kept.get("start_runs", []),
         pair_runs=pair_runs or kept.get("pair_runs", []),
         pairs=pairs or kept.get("pairs", []),
     )
@@ -296,7 +395,10 @@ def _arguments(parser):
     parser.add_argument("--batch", type=int, default=1024, help="trajectories of each run (default 1024)")
     parser.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="runs at a time (processes)")
     parser.add_argument(
-        "--part", choices=("drift", "pairs", "both"), default="both", help="which runs (the other part is kept from --out's results file)"
+        "--part",
+        choices=("drift", "pairs", "start", "check", "all"),
+        default="all",
+        help="which runs (the other parts are kept from --out's results file; check: none, the library checks alone)",
     )
 
 

@@ -429,6 +429,34 @@ def drift_emulation_table(_entries=None, root: Path | None = None) -> str:
             )
         pair_headers = ["computed in long double", "h", "trajectories", "steps", "energy drift a step, set 0", "one ulp off"]
         text += "\n\n" + _table([*pair_headers, "correlation", "shared spread", "noise"], pair_rows)
+    if data.get("start_runs"):
+        start_runs = {(r["variant"], r["seed"]): r for r in data["start_runs"]}
+        start_seeds = sorted({seed for _, seed in start_runs})
+        start_rows = []
+        for variant in dict.fromkeys(variant for variant, _ in start_runs):
+            cells = [variant]
+            for seed in start_seeds:
+                r = start_runs.get((variant, seed))
+                cells.append("–" if r is None else f"{r['mean']:+.1e} ± {r['standard_error']:.1e}")
+            spreads = [start_runs[(variant, seed)]["spread"] for seed in start_seeds if (variant, seed) in start_runs]
+            cells.append(f"{sum(spreads) / len(spreads):.1e}")
+            start_rows.append(cells)
+        check = data["library_check_steps"]
+        by_start = check["by_start"]
+        intro = (
+            f"Every step started as the library starts it, the field as it computes it. From the library's states "
+            f"({check['batch']} trajectories, {check['steps']} steps), the float64 step here gives other momenta than the "
+            f"library's in {by_start['K₁']['fraction_differing']:.1%} of their entries started from K₁, in "
+            f"{by_start['library']['fraction_differing']:.1%} started as the library starts"
+        )
+        without = by_start.get("library, no fused multiply-adds")
+        intro += (
+            "."
+            if without is None
+            else f", and in {without['fraction_differing']:.2%} so with the library compiled without fused multiply-adds."
+        )
+        start_headers = ["computed in long double", *(f"energy drift a step, set {seed}" for seed in start_seeds), "spread"]
+        text += f"\n\n{intro}\n\n" + _table(start_headers, start_rows)
     return text
 
 

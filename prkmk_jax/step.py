@@ -75,9 +75,10 @@ class PRKMK(AbstractMethod):
       a fixed point, its error would lean the same way at every step, a
       bias that overtakes the random walk over millions of steps. A far
       smaller drift remains, from the rounding of the stage solve itself:
-      its sign follows the order of the operations, and in an emulation of
-      the free body's step a stage solve in extended precision (which would
-      evaluate the field in it) removes it
+      its sign depends on where each step's iteration starts (the previous
+      step's stages, `extrapolated_guesses`) and how the compiled step
+      rounds, and in an emulation of the free body's step a stage solve in
+      extended precision (which would evaluate the field in it) removes it
       (`benchmarks/energy_drift.py` measures it on the free body,
       `benchmarks/drift_emulation.py` traces it, `benchmarks/round_off.py`
       fits the growth).
