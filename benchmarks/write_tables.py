@@ -391,25 +391,12 @@ def drift_emulation_table(_entries=None, root: Path | None = None) -> str:
     runs' drifts per trajectory, and their spread split into the part both
     share and the noise."""
     data = results_file("drift_emulation.json", root)
-    seeds = sorted({r["seed"] for r in data["runs"]})
-    variants = list(dict.fromkeys(r["variant"] for r in data["runs"]))
-    runs = {(r["variant"], r["seed"]): r for r in data["runs"]}
     first = data["runs"][0]
-    rows = []
-    for variant in variants:
-        cells = [variant]
-        for seed in seeds:
-            r = runs.get((variant, seed))
-            cells.append("–" if r is None else f"{r['mean']:+.1e} ± {r['standard_error']:.1e}")
-        spreads = [runs[(variant, seed)]["spread"] for seed in seeds if (variant, seed) in runs]
-        cells.append(f"{sum(spreads) / len(spreads):.1e}")
-        rows.append(cells)
-    headers = ["computed in long double", *(f"energy drift a step, set {seed}" for seed in seeds), "spread"]
     intro = (
         f"{_measured_on(data)} {first['batch']} trajectories, {first['steps']:.0e} steps of h = {data['step']:g} each; "
         f"the float64 emulation's first step is {data['library_check_eps']:.1f} eps from the library's at most."
     )
-    text = f"{intro}\n\n{_table(headers, rows)}"
+    text = f"{intro}\n\n{_drift_table(data['runs'])}"
     if data.get("pairs"):
         runs_of = {(r["variant"], r["perturbed"]): r for r in data["pair_runs"]}
         pair_rows = []
@@ -430,17 +417,6 @@ def drift_emulation_table(_entries=None, root: Path | None = None) -> str:
         pair_headers = ["computed in long double", "h", "trajectories", "steps", "energy drift a step, set 0", "one ulp off"]
         text += "\n\n" + _table([*pair_headers, "correlation", "shared spread", "noise"], pair_rows)
     if data.get("start_runs"):
-        start_runs = {(r["variant"], r["seed"]): r for r in data["start_runs"]}
-        start_seeds = sorted({seed for _, seed in start_runs})
-        start_rows = []
-        for variant in dict.fromkeys(variant for variant, _ in start_runs):
-            cells = [variant]
-            for seed in start_seeds:
-                r = start_runs.get((variant, seed))
-                cells.append("–" if r is None else f"{r['mean']:+.1e} ± {r['standard_error']:.1e}")
-            spreads = [start_runs[(variant, seed)]["spread"] for seed in start_seeds if (variant, seed) in start_runs]
-            cells.append(f"{sum(spreads) / len(spreads):.1e}")
-            start_rows.append(cells)
         check = data["library_check_steps"]
         by_start = check["by_start"]
         intro = (
@@ -455,9 +431,27 @@ def drift_emulation_table(_entries=None, root: Path | None = None) -> str:
             if without is None
             else f", and in {without['fraction_differing']:.2%} so with the library compiled without fused multiply-adds."
         )
-        start_headers = ["computed in long double", *(f"energy drift a step, set {seed}" for seed in start_seeds), "spread"]
-        text += f"\n\n{intro}\n\n" + _table(start_headers, start_rows)
+        text += f"\n\n{intro}\n\n{_drift_table(data['start_runs'])}"
     return text
+
+
+def _drift_table(runs) -> str:
+    """`drift_emulation_table`'s table of runs: per variant, each set's mean
+    drift a step with its standard error, and the spread averaged over the
+    sets."""
+    seeds = sorted({r["seed"] for r in runs})
+    by_key = {(r["variant"], r["seed"]): r for r in runs}
+    rows = []
+    for variant in dict.fromkeys(r["variant"] for r in runs):
+        cells = [variant]
+        for seed in seeds:
+            r = by_key.get((variant, seed))
+            cells.append("–" if r is None else f"{r['mean']:+.1e} ± {r['standard_error']:.1e}")
+        spreads = [by_key[(variant, seed)]["spread"] for seed in seeds if (variant, seed) in by_key]
+        cells.append(f"{sum(spreads) / len(spreads):.1e}")
+        rows.append(cells)
+    headers = ["computed in long double", *(f"energy drift a step, set {seed}" for seed in seeds), "spread"]
+    return _table(headers, rows)
 
 
 def work_precision_table(_entries=None, root: Path | None = None) -> str:
