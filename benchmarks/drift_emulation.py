@@ -59,10 +59,10 @@ step after the first, from the previous step's stages moved by the change
 of K₁ (`PRKMK.extrapolated_guesses`), and with the field as the library's
 compiled step computes it: Π times the rounded 1/I, since XLA turns a
 division by the inertia broadcast over the batch into that product. Before
-the runs, the float64 step here is started from each of 200 states of the
-library's own run (64 trajectories), with the library's carried stages
-for this start, and the share of its momenta that differ from the
-library's next ones is recorded for both starts, and for the library's
+the runs, the float64 step here is started from the library's own states
+over 200 steps of 64 trajectories, with the library's carried stages for
+this start, and the share of its momenta that differ from the library's
+next ones is recorded for both starts, and for the library's
 start again with the library compiled under
 `--xla_backend_optimization_level=0`: XLA contracts products and sums
 into fused multiply-adds on CPU by default, which NumPy does not, and

@@ -389,7 +389,8 @@ def drift_emulation_table(_entries=None, root: Path | None = None) -> str:
     and the spread of the trajectories' drifts, averaged over the sets. Then
     the one-ulp pairs: each run's mean drift, the correlation of the two
     runs' drifts per trajectory, and their spread split into the part both
-    share and the noise."""
+    share and the noise. Then the runs started as the library starts its
+    steps, after how near the emulated step is to the library's."""
     data = results_file("drift_emulation.json", root)
     first = data["runs"][0]
     intro = (
