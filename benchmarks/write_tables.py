@@ -40,8 +40,8 @@ Tables:
 - `energy_drift`: `energy_drift.json`, the signed energy drift a step of
   SV at the round-off limit, and how much of it the initial state sets.
 - `drift_emulation`: `drift_emulation.json`, the same drift of SV Cayley
-  emulated in NumPy with parts of the step in extended precision, and its
-  one-ulp pairs.
+  emulated in NumPy with parts of the step in extended precision, its
+  one-ulp pairs, and its runs started as the library starts its steps.
 - `decision`: the rows of `accuracy`, with the method to pick (the
   fastest run that reached the target; the hand-written kernel left out,
   it is not something a user calls), the runner-up, and the fastest
