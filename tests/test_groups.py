@@ -2,6 +2,9 @@
 groups and every bundle group, on hypothesis-sampled elements (near-identity
 ones included)."""
 
+import math
+from fractions import Fraction
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -249,6 +252,33 @@ def test_so3_actions_differentiate_as_the_matrix_route(a, b, c):
     du, dx = jnp.asarray(c[:3]), jnp.asarray(c[3:])
     for action, matrix_route in _forward_and_reverse_derivatives(u, x, du, dx):
         _close(action, matrix_route, tol=1e-11)
+
+
+def _series_and_derivative(t2: float, first: int) -> tuple[float, float]:
+    """Σₖ (−t2)ᵏ/(first + 2k)! and its derivative in t2, in exact rational
+    arithmetic to 60 terms: sin θ/θ (first = 1) and (1 − cos θ)/θ² (first =
+    2) as functions of t2 = θ², for θ ≤ π."""
+    x = Fraction(t2)
+    value = sum(Fraction((-1) ** k, math.factorial(first + 2 * k)) * x**k for k in range(60))
+    slope = sum(Fraction(k * (-1) ** k, math.factorial(first + 2 * k)) * x ** (k - 1) for k in range(1, 60))
+    return float(value), float(slope)
+
+
+@pytest.mark.parametrize("theta", [1e-3, 0.0999, 0.1001, 0.5, 1.5, 3.1])
+def test_so3_rotation_coefficients_differentiate_as_their_series(theta):
+    """The coefficients of Rodrigues' formula and their derivatives in θ²,
+    which a custom JVP computes together (either side of the Taylor branch
+    at θ² = 1e-2), forward and reverse, against their series summed exactly.
+    Just above the switch the exact forms' derivatives cancel to about
+    ε/θ² relative; below it the Taylor polynomials are exact to rounding."""
+    t2 = jnp.asarray(theta * theta)
+    coefficients = jax.jit(pk.groups.so3._rotation_coefficients)
+    (a, b), (da, db) = jax.jit(lambda s: jax.jvp(coefficients, (s,), (jnp.ones_like(s),)))(t2)
+    reverse = jax.jit(jax.grad(lambda s: sum(w * c for w, c in zip((0.7, -1.3), coefficients(s)))))(t2)
+    (a_exact, da_exact), (b_exact, db_exact) = (_series_and_derivative(float(t2), first) for first in (1, 2))
+    np.testing.assert_allclose([a, b], [a_exact, b_exact], rtol=1e-14)
+    np.testing.assert_allclose([da, db], [da_exact, db_exact], rtol=1e-12)
+    np.testing.assert_allclose(reverse, 0.7 * da_exact - 1.3 * db_exact, rtol=1e-12)
 
 
 @pytest.mark.parametrize("name", ["SO3", "SO4", "R3"])

@@ -97,7 +97,29 @@ def _rodrigues_terms(u, x):
     return a[..., None] * ux, b[..., None] * uux
 
 
+@jax.custom_jvp
 def _rotation_coefficients(t2):
+    """(sin θ/θ, (1 − cos θ)/θ²) of θ² = t2 (`_rotation_coefficients_of`).
+
+    Differentiated, the coefficients and their derivatives in t2 are
+    computed together behind one optimisation barrier. Without it XLA
+    fuses the sines, and the cosines of their derivatives, into every
+    kernel of a step's VJP that reads them, and evaluates them again for
+    each component of the vectors there (`benchmarks/against_revision.py
+    --gradients` measures the VJPs)."""
+    return _rotation_coefficients_of(t2)
+
+
+@_rotation_coefficients.defjvp
+def _rotation_coefficients_jvp(primals, tangents):
+    (t2,), (t2_dot,) = primals, tangents
+    (a, b), (da, db) = jax.jvp(_rotation_coefficients_of, (t2,), (jnp.ones_like(t2),))
+    # One barrier on the four stacked, as `groups.computed_once` does for two.
+    a, b, da, db = jax.lax.optimization_barrier(jnp.stack([a, b, da, db]))
+    return (a, b), (da * t2_dot, db * t2_dot)
+
+
+def _rotation_coefficients_of(t2):
     """(sin θ/θ, (1 − cos θ)/θ²), the second as ½(sin(θ/2)/(θ/2))², which
     does not cancel. Taylor branches below `_SMALL` (double where).
 
