@@ -300,13 +300,13 @@ def library_check(batch=16, steps=1, start="K₁"):
     return float(np.max(np.abs(differences)) / np.finfo(np.float64).eps), float(np.mean(differences != 0))
 
 
-def _check_without_fused_multiply_adds():
+def _check_without_fused_multiply_adds(batch, steps):
     """`library_check` for the library's start, with the library compiled
     under `--xla_backend_optimization_level=0` (no fused multiply-adds, which
     NumPy does not form either), in a process of its own."""
     code = (
         "import json, jax; jax.config.update('jax_enable_x64', True); import drift_emulation as D; "
-        f"print(json.dumps(D.library_check({LIBRARY_CHECK_BATCH}, {LIBRARY_CHECK_STEPS}, 'library')))"
+        f"print(json.dumps(D.library_check({batch}, {steps}, 'library')))"
     )
     environment = dict(os.environ, XLA_FLAGS="--xla_backend_optimization_level=0")
     done = subprocess.run(
@@ -335,20 +335,21 @@ def main(argv=None):
     if np.finfo(LONG).nmant < 60:
         bits = np.finfo(LONG).nmant
         raise SystemExit(f"NumPy's long double here has {bits} stored significand bits; this emulation needs x86's 64-bit one.")
-    steps, batch, seeds = (2_000, 64, SEEDS[:1]) if args.quick else (int(args.steps), args.batch, SEEDS)
-    pair_steps, pair_batch = (2_000, 64) if args.quick else (PAIR_STEPS, PAIR_BATCH)
+    steps, batch, seeds = (200, 16, SEEDS[:1]) if args.quick else (int(args.steps), args.batch, SEEDS)
+    pair_steps, pair_batch = (200, 16) if args.quick else (PAIR_STEPS, PAIR_BATCH)
+    check_batch, check_steps_count = (16, 20) if args.quick else (LIBRARY_CHECK_BATCH, LIBRARY_CHECK_STEPS)
     check, _ = library_check()
     print(f"one float64 step here against the library's: {check:.1f} eps at most")
     if check > 4:
         raise SystemExit("the emulated step no longer matches the library's (more than 4 eps apart): update it first.")
     check_steps = {
-        start: dict(zip(("largest_eps", "fraction_differing"), library_check(LIBRARY_CHECK_BATCH, LIBRARY_CHECK_STEPS, start)))
+        start: dict(zip(("largest_eps", "fraction_differing"), library_check(check_batch, check_steps_count, start)))
         for start in ("K₁", "library")
     }
-    check_steps["library, no fused multiply-adds"] = _check_without_fused_multiply_adds()
+    check_steps["library, no fused multiply-adds"] = _check_without_fused_multiply_adds(check_batch, check_steps_count)
     for start, c in check_steps.items():
         print(
-            f"{LIBRARY_CHECK_STEPS} steps from the library's states, start {start}: "
+            f"{check_steps_count} steps from the library's states, start {start}: "
             f"{c['fraction_differing']:.2%} of the momenta differ, by {c['largest_eps']:.1f} eps at most"
         )
     path = out / "drift_emulation.json"
@@ -380,7 +381,7 @@ def main(argv=None):
     results = dict(
         machine=C.machine(),
         library_check_eps=check,
-        library_check_steps=dict(batch=LIBRARY_CHECK_BATCH, steps=LIBRARY_CHECK_STEPS, by_start=check_steps),
+        library_check_steps=dict(batch=check_batch, steps=check_steps_count, by_start=check_steps),
         step=STEP,
         runs=rows or kept.get("runs", []),
         start_runs=start_runs or kept.get("start_runs", []),
