@@ -9,6 +9,7 @@ from jaxtyping import Array, Float
 
 from ._util import as_array, check_floating, taylor_or_exact
 from .rotation import AbstractRotationGroup
+from .trig import computed_once
 
 # Below this θ² the Taylor branches are used; the exact forms that cancel
 # (θ − sin θ)/θ³ and the dexp⁻¹ coefficient lose ~eps/θ² relative accuracy.
@@ -102,11 +103,11 @@ def _rotation_coefficients(t2):
     """(sin θ/θ, (1 − cos θ)/θ²) of θ² = t2 (`_rotation_coefficients_of`).
 
     Differentiated, the coefficients and their derivatives in t2 are
-    computed together behind one optimisation barrier. Without it XLA
-    fuses the sines, and the cosines of their derivatives, into every
-    kernel of a step's VJP that reads them, and evaluates them again for
-    each component of the vectors there (`benchmarks/against_revision.py
-    --gradients` measures the VJPs)."""
+    computed together behind one optimisation barrier (`computed_once`).
+    Without it XLA fuses the sines, and the cosines of their derivatives,
+    into every kernel of a step's VJP that reads them, and evaluates them
+    again for each component of the vectors there
+    (`benchmarks/against_revision.py --gradients` measures the VJPs)."""
     return _rotation_coefficients_of(t2)
 
 
@@ -114,8 +115,7 @@ def _rotation_coefficients(t2):
 def _rotation_coefficients_jvp(primals, tangents):
     (t2,), (t2_dot,) = primals, tangents
     (a, b), (da, db) = jax.jvp(_rotation_coefficients_of, (t2,), (jnp.ones_like(t2),))
-    # One barrier on the four stacked, as `groups.computed_once` does for two.
-    a, b, da, db = jax.lax.optimization_barrier(jnp.stack([a, b, da, db]))
+    (a, b), (da, db) = computed_once(jnp.stack([a, b]), jnp.stack([da, db]))
     return (a, b), (da * t2_dot, db * t2_dot)
 
 
