@@ -337,19 +337,19 @@ def main(argv=None):
         raise SystemExit(f"NumPy's long double here has {bits} stored significand bits; this emulation needs x86's 64-bit one.")
     steps, batch, seeds = (200, 16, SEEDS[:1]) if args.quick else (int(args.steps), args.batch, SEEDS)
     pair_steps, pair_batch = (200, 16) if args.quick else (PAIR_STEPS, PAIR_BATCH)
-    check_batch, check_steps_count = (16, 20) if args.quick else (LIBRARY_CHECK_BATCH, LIBRARY_CHECK_STEPS)
+    check_batch, check_steps = (16, 20) if args.quick else (LIBRARY_CHECK_BATCH, LIBRARY_CHECK_STEPS)
     check, _ = library_check()
     print(f"one float64 step here against the library's: {check:.1f} eps at most")
     if check > 4:
         raise SystemExit("the emulated step no longer matches the library's (more than 4 eps apart): update it first.")
-    check_steps = {
-        start: dict(zip(("largest_eps", "fraction_differing"), library_check(check_batch, check_steps_count, start)))
+    checks_by_start = {
+        start: dict(zip(("largest_eps", "fraction_differing"), library_check(check_batch, check_steps, start)))
         for start in ("K₁", "library")
     }
-    check_steps["library, no fused multiply-adds"] = _check_without_fused_multiply_adds(check_batch, check_steps_count)
-    for start, c in check_steps.items():
+    checks_by_start["library, no fused multiply-adds"] = _check_without_fused_multiply_adds(check_batch, check_steps)
+    for start, c in checks_by_start.items():
         print(
-            f"{check_steps_count} steps from the library's states, start {start}: "
+            f"{check_steps} steps from the library's states, start {start}: "
             f"{c['fraction_differing']:.2%} of the momenta differ, by {c['largest_eps']:.1f} eps at most"
         )
     path = out / "drift_emulation.json"
@@ -381,7 +381,7 @@ def main(argv=None):
     results = dict(
         machine=C.machine(),
         library_check_eps=check,
-        library_check_steps=dict(batch=check_batch, steps=check_steps_count, by_start=check_steps),
+        library_check_steps=dict(batch=check_batch, steps=check_steps, by_start=checks_by_start),
         step=STEP,
         runs=rows or kept.get("runs", []),
         start_runs=start_runs or kept.get("start_runs", []),
