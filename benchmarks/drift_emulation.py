@@ -53,24 +53,27 @@ share, say whether the stage solve's rounding is also what makes each
 trajectory drift its own way (the drifts that lift the growth exponents
 above a random walk's).
 
-The library's start (`--part start`): `nothing (float64)` and `stages
-exact` again, with each step's iteration started as `PRKMK` starts every
-step after the first, from the previous step's stages moved by the change
-of K₁ (`PRKMK.extrapolated_guesses`), and with the field as the library's
-compiled step computes it: Π times the rounded 1/I, since XLA turns a
-division by the inertia broadcast over the batch into that product. Before
-the runs, the float64 step here is started from the library's own states
-over 200 steps of 64 trajectories, with the library's carried stages for
-this start, and the share of its momenta that differ from the library's
-next ones is recorded for both starts, and for the library's
-start again with the library compiled under
+The starts from the previous step's stages (`--part start`): `nothing
+(float64)` and `stages exact` again, with each step's iteration started
+from the previous step's stages moved by the change of K₁ ("extrapolated",
+the guess Gᵢ of `PRKMK.extrapolated_guesses`) or on either side of that
+guess, G ± (K₂ − K₁) of the previous step by the parity of Π's last bits
+("either side", the library's start at round-off, which `--part start`
+runs), and with the field as the library's compiled step computes it: Π
+times the rounded 1/I, since XLA turns a division by the inertia
+broadcast over the batch into that product. Before the runs, the float64
+step here is started from the library's own states over 200 steps of 64
+trajectories, with the library's carried stages for its start, and the
+share of its momenta that differ from the library's next ones is
+recorded for the K₁ start and the library's, and for the library's start
+again with the library compiled under
 `--xla_backend_optimization_level=0`: XLA contracts products and sums
 into fused multiply-adds on CPU by default, which NumPy does not, and
 that flag turns it off.
 
     python benchmarks/drift_emulation.py --jobs 2       # every part, two runs at a time
     python benchmarks/drift_emulation.py --part pairs   # the pairs again, the rest kept
-    python benchmarks/drift_emulation.py --part start   # the library's start again, the rest kept
+    python benchmarks/drift_emulation.py --part start   # the library's start (either side) again, the rest kept
     python benchmarks/drift_emulation.py --part check   # the checks against the library alone
     python benchmarks/drift_emulation.py --quick
 """
@@ -139,11 +142,21 @@ def _increment(h, k1, k2):
     return _long(h) * (_long(k1) + _long(k2)) * LONG(0.5)
 
 
-def _stages_float64(momentum, inertia, h, carried=None, library_field=False):
+def _start_side(momentum):
+    """±1 per trajectory: the parity of the sum of the lowest bits of Π's
+    entries, as `PRKMK.extrapolated_guesses` picks its side."""
+    parity = (np.ascontiguousarray(momentum).view(np.uint64) & np.uint64(1)).sum(axis=0)
+    return np.where(parity % 2 == 0, 1.0, -1.0)
+
+
+def _stages_float64(momentum, inertia, h, carried=None, library_field=False, either_side=False):
     """The library's stage solve: (K₁, K₂, iterations of the batch). K₂ starts
     from K₁ (the first step's start), or with `carried` = (K₁, K₂) of the
-    previous step from K₂ + the change of K₁ since then, as `PRKMK` starts
-    every later step (`PRKMK.extrapolated_guesses`). `library_field`: I⁻¹Π as
+    previous step from G = K₂ + the change of K₁ since then (the
+    extrapolation of `PRKMK.extrapolated_guesses`), and with `either_side`
+    from G ± (K₂ − K₁) of the previous step, the side by the parity of Π's
+    last bits, as `PRKMK` starts every step after the first when it solves
+    to round-off. `library_field`: I⁻¹Π as
     the library's compiled field computes it, Π times the rounded 1/I (XLA
     turns a division by the inertia broadcast over the batch into that
     product); otherwise the quotient."""
@@ -163,6 +176,8 @@ def _stages_float64(momentum, inertia, h, carried=None, library_field=False):
         return field(momentum + _rotation_change(h * (0.5 * k1 + 0.5 * k2), momentum))
 
     k2 = k1.copy() if carried is None else carried[1] + (k1 - carried[0])
+    if carried is not None and either_side:
+        k2 = k2 + _start_side(momentum) * (carried[1] - carried[0])
     batch = momentum.shape[1]
     error, previous = np.full(batch, np.inf), np.full(batch, np.inf)
     active = np.ones(batch, bool)
@@ -186,11 +201,12 @@ def _stages_long(momentum, inertia, h, k1, k2, evaluations):
     return k1, k2
 
 
-def step(variant, momentum, compensation, inertia, h, carried=None, library_field=False):
+def step(variant, momentum, compensation, inertia, h, carried=None, library_field=False, either_side=False):
     """One step of `variant` from (Πₙ, its compensation): (Πₙ₊₁,
     compensation, iterations, the float64 stages (K₁, K₂) for the next
-    step's start). `carried` and `library_field`: see `_stages_float64`."""
-    k1, k2, iterations = _stages_float64(momentum, inertia, h, carried, library_field)
+    step's start). `carried`, `library_field` and `either_side`: see
+    `_stages_float64`."""
+    k1, k2, iterations = _stages_float64(momentum, inertia, h, carried, library_field, either_side)
     solved = (k1, k2)
     if variant in ("stages exact", "stages refined once"):
         evaluations = EXACT_EVALUATIONS if variant == "stages exact" else 1
@@ -228,8 +244,10 @@ def run(variant, seed, steps, batch, h=STEP, perturbed=None, start="K₁"):
     """The energy drifts a step of one variant and set of initial states (its
     momenta scaled by 1 + ε where `perturbed`): their summary, and with
     `perturbed` given, each trajectory's. `start`: "K₁", every step's stage
-    iteration started from K₂ = K₁; "library", from the previous step's
-    stages, with the field as the library's compiled step computes it
+    iteration started from K₂ = K₁; "extrapolated", from the previous step's
+    stages moved by the change of K₁; "either side" (the library's start at
+    round-off), on either side of that by the parity of Π's last bits; the
+    last two with the field as the library's compiled step computes it
     (`_stages_float64`)."""
     inertia = np.asarray(INERTIA)[:, None]
     momentum = initial_momenta(batch, seed)
@@ -239,12 +257,12 @@ def run(variant, seed, steps, batch, h=STEP, perturbed=None, start="K₁"):
     start_energy = energy(momentum, inertia)
     every = max(steps // SAVES, 1)
     errors, iterations, carried = [], 0, None
-    library = start == "library"
+    library, either_side = start != "K₁", start == "either side"
     started = time.perf_counter()
     for n in range(steps):
         if n % every == 0:
             errors.append(np.asarray(energy(momentum, inertia) / start_energy - 1, np.float64))
-        momentum, compensation, count, solved = step(variant, momentum, compensation, inertia, h, carried, library)
+        momentum, compensation, count, solved = step(variant, momentum, compensation, inertia, h, carried, library, either_side)
         carried = solved if library else None
         iterations += count
     drifts = np.polyfit(every * np.arange(len(errors)), np.array(errors), 1)[0]
@@ -272,8 +290,8 @@ def library_check(batch=16, steps=1, start="K₁"):
     library's run: (the largest difference of the momenta in units of
     float64's eps, the share of their entries that differ). Each step here
     starts from the library's state (no compensation on either side) and,
-    for `start="library"`, from the stages the library carries (see
-    `run`)."""
+    for `start="either side"`, from the stages the library carries, as the
+    library starts (see `run`)."""
     import jax
     import jax.numpy as jnp
 
@@ -287,12 +305,13 @@ def library_check(batch=16, steps=1, start="K₁"):
     inertia = jnp.asarray(INERTIA)
     carried = jax.vmap(lambda y: method.initial_carried(scene, 0.0, y, inertia))(y)
     one_step = jax.jit(jax.vmap(lambda y, carried: method.carried_step(scene, 0.0, y, STEP, inertia, carried)))
-    library_start = start == "library"
+    library_start = start == "either side"
     differences = []
     for _ in range(steps):
         stages = (np.asarray(carried[0][0]).T, np.asarray(carried[1][1][0]).T) if library_start else None
         momentum = np.asarray(y.fiber).T
-        here, *_ = step("nothing (float64)", momentum, np.zeros_like(momentum), np.asarray(INERTIA)[:, None], STEP, stages, library_start)
+        inertia_column = np.asarray(INERTIA)[:, None]
+        here, *_ = step("nothing (float64)", momentum, np.zeros_like(momentum), inertia_column, STEP, stages, library_start, library_start)
         result = one_step(y, carried)
         y, carried = result.y, result.carried
         differences.append(np.asarray(y.fiber).T - here)
@@ -301,12 +320,12 @@ def library_check(batch=16, steps=1, start="K₁"):
 
 
 def _check_without_fused_multiply_adds(batch, steps):
-    """`library_check` for the library's start, with the library compiled
+    """`library_check` for the library's start (either side), with the library compiled
     under `--xla_backend_optimization_level=0` (no fused multiply-adds, which
     NumPy does not form either), in a process of its own."""
     code = (
         "import json, jax; jax.config.update('jax_enable_x64', True); import drift_emulation as D; "
-        f"print(json.dumps(D.library_check({batch}, {steps}, 'library')))"
+        f"print(json.dumps(D.library_check({batch}, {steps}, 'either side')))"
     )
     environment = dict(os.environ, XLA_FLAGS="--xla_backend_optimization_level=0")
     done = subprocess.run(
@@ -322,7 +341,7 @@ def _case(arguments):
 
 def _report(row):
     label = f"set {row['seed']}" + (", one ulp off" if row.get("perturbed") else "")
-    label += ", library's start" if row["start"] == "library" else ""
+    label += "" if row["start"] == "K₁" else f", {row['start']} start"
     print(
         f"{row['variant']:26s} h = {row['h']:<5g}{label}: energy {row['mean']:+.2e} ± {row['standard_error']:.1e} a step, "
         f"spread {row['spread']:.1e}  ({row['seconds']:.0f} s)",
@@ -344,9 +363,9 @@ def main(argv=None):
         raise SystemExit("the emulated step no longer matches the library's (more than 4 eps apart): update it first.")
     checks_by_start = {
         start: dict(zip(("largest_eps", "fraction_differing"), library_check(check_batch, check_steps, start)))
-        for start in ("K₁", "library")
+        for start in ("K₁", "either side")
     }
-    checks_by_start["library, no fused multiply-adds"] = _check_without_fused_multiply_adds(check_batch, check_steps)
+    checks_by_start["either side, no fused multiply-adds"] = _check_without_fused_multiply_adds(check_batch, check_steps)
     for start, c in checks_by_start.items():
         print(
             f"{check_steps} steps from the library's states, start {start}: "
@@ -360,12 +379,12 @@ def main(argv=None):
     if args.part in ("pairs", "all"):
         cases += [(variant, 0, pair_steps, pair_batch, PAIR_STEP, perturbed) for variant in PAIR_VARIANTS for perturbed in (False, True)]
     if args.part in ("start", "all"):
-        cases += [(variant, seed, steps, batch, STEP, None, "library") for seed in seeds for variant in START_VARIANTS]
+        cases += [(variant, seed, steps, batch, STEP, None, "either side") for seed in seeds for variant in START_VARIANTS]
     rows, pair_runs, start_runs = [], [], []
     # Spawned, not forked: this process has started JAX's threads (the check).
     with ProcessPoolExecutor(max_workers=args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
         for row in pool.map(_case, cases):
-            if row["start"] == "library":
+            if row["start"] != "K₁":
                 start_runs.append(row)
             else:
                 (rows if "perturbed" not in row else pair_runs).append(row)
@@ -384,7 +403,8 @@ def main(argv=None):
         library_check_steps=dict(batch=check_batch, steps=check_steps, by_start=checks_by_start),
         step=STEP,
         runs=rows or kept.get("runs", []),
-        start_runs=start_runs or kept.get("start_runs", []),
+        # Runs from another start than this part's are kept.
+        start_runs=[r for r in kept.get("start_runs", []) if r["start"] not in {n["start"] for n in start_runs}] + start_runs,
         pair_runs=pair_runs or kept.get("pair_runs", []),
         pairs=pairs or kept.get("pairs", []),
     )

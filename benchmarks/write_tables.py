@@ -389,8 +389,9 @@ def drift_emulation_table(_entries=None, root: Path | None = None) -> str:
     and the spread of the trajectories' drifts, averaged over the sets. Then
     the one-ulp pairs: each run's mean drift, the correlation of the two
     runs' drifts per trajectory, and their spread split into the part both
-    share and the noise. Then the runs started as the library starts its
-    steps, after how near the emulated step is to the library's."""
+    share and the noise. Then the runs started from the previous step's
+    stages (extrapolated, and either side of that as the library starts at
+    round-off), after how near the emulated step is to the library's."""
     data = results_file("drift_emulation.json", root)
     first = data["runs"][0]
     intro = (
@@ -421,18 +422,19 @@ def drift_emulation_table(_entries=None, root: Path | None = None) -> str:
         check = data["library_check_steps"]
         by_start = check["by_start"]
         intro = (
-            f"Every step started as the library starts it, the field as it computes it. From the library's states "
-            f"({check['batch']} trajectories, {check['steps']} steps), the float64 step here gives other momenta than the "
-            f"library's in {by_start['K₁']['fraction_differing']:.1%} of their entries started from K₁, in "
-            f"{by_start['library']['fraction_differing']:.1%} started as the library starts"
+            f"Every step started from the previous step's stages, the field as the library computes it. From the library's "
+            f"states ({check['batch']} trajectories, {check['steps']} steps), the float64 step here gives other momenta than "
+            f"the library's in {by_start['K₁']['fraction_differing']:.1%} of their entries started from K₁, in "
+            f"{by_start['either side']['fraction_differing']:.1%} started as the library starts (either side)"
         )
-        without = by_start.get("library, no fused multiply-adds")
+        without = by_start.get("either side, no fused multiply-adds")
         intro += (
             "."
             if without is None
             else f", and in {without['fraction_differing']:.2%} so with the library compiled without fused multiply-adds."
         )
-        text += f"\n\n{intro}\n\n{_drift_table(data['start_runs'])}"
+        start_runs = [dict(r, variant=f"{r['variant']}, {r['start']} start") for r in data["start_runs"]]
+        text += f"\n\n{intro}\n\n{_drift_table(start_runs)}"
     return text
 
 
