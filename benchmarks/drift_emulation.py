@@ -306,11 +306,11 @@ def library_check(batch=16, steps=1, start="K₁"):
     carried = jax.vmap(lambda y: method.initial_carried(scene, 0.0, y, inertia))(y)
     one_step = jax.jit(jax.vmap(lambda y, carried: method.carried_step(scene, 0.0, y, STEP, inertia, carried)))
     library_start = start == "either side"
+    inertia_column = np.asarray(INERTIA)[:, None]
     differences = []
     for _ in range(steps):
         stages = (np.asarray(carried[0][0]).T, np.asarray(carried[1][1][0]).T) if library_start else None
         momentum = np.asarray(y.fiber).T
-        inertia_column = np.asarray(INERTIA)[:, None]
         here, *_ = step("nothing (float64)", momentum, np.zeros_like(momentum), inertia_column, STEP, stages, library_start, library_start)
         result = one_step(y, carried)
         y, carried = result.y, result.carried
