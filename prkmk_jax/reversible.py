@@ -89,16 +89,20 @@ def undoing_method(method: AbstractMethod) -> AbstractMethod:
     )
 
 
-def summed_plainly(method: AbstractMethod) -> AbstractMethod:
+def for_the_backward_pass(method: AbstractMethod) -> AbstractMethod:
     """`method` with each PRKMK method in it taking its step's product as it
-    is (`compensated_sum=False`). The backward pass undoes and differentiates
-    steps with it: the compensation is carried by the forward pass only, the
-    undone states are checked against the kept ones, and the step's
-    derivative does not depend on how its change is added."""
+    is (`compensated_sum=False`) and starting its stage iteration at the
+    extrapolated guess (`start_either_side=False`). The backward pass undoes
+    and differentiates steps with it: the compensation is carried by the
+    forward pass only, the undone states are checked against the kept ones,
+    and neither the step's derivative nor the rebuilt state's accuracy
+    depends on how its change is added or where the iteration starts (the
+    start cancels a drift over many steps forward, which the rebuilt states
+    do not accumulate: each stretch starts again from a kept state)."""
     if isinstance(method, PRKMK):
-        return dataclasses.replace(method, compensated_sum=False)
+        return dataclasses.replace(method, compensated_sum=False, start_either_side=False)
     if isinstance(method, AbstractMadeOfSteps):
-        return eqx.tree_at(lambda m: m.method, method, summed_plainly(method.method))
+        return eqx.tree_at(lambda m: m.method, method, for_the_backward_pass(method.method))
     return method
 
 
@@ -192,7 +196,7 @@ def _step_back(method, undo, params_dynamic, params_static, t_start, t_end, dt, 
     the first failure). The parameters are (args, vector field), split into
     the arrays differentiated and the rest."""
     args, vector_field = eqx.combine(params_dynamic, params_static)
-    method, undo = summed_plainly(method), summed_plainly(undo)
+    method, undo = for_the_backward_pass(method), for_the_backward_pass(undo)
     dtype = jnp.result_type(*jax.tree.leaves(y_next))
     if isinstance(method, Splitting) and jnp.finfo(dtype).eps <= LOW_PRECISION_EPS:
         # Undone and differentiated from its end, each sub-flow once.

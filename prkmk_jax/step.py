@@ -95,6 +95,13 @@ class PRKMK(AbstractMethod):
       product f(U)⊙y as it is, a little quicker a step
       (`benchmarks/against_revision.py` measures both), for runs too short
       to notice.
+    - `start_either_side`: with `iterate_until="round-off"` and no
+      `root_finder`, where each step's stage iteration starts. True
+      (default): on the side of the extrapolated guess that the state's last
+      bits pick, so that the leans of the round-off solve cancel. False: at
+      the guess, about one iteration a step fewer, and the energy drifts
+      with the lean; the reversible backward pass undoes steps so, since it
+      needs each state rebuilt to round-off, not a drift without bias.
     - `max_iterations`: iteration cap of each implicit block's loop (with
       `iterate_until="round-off"` one more evaluation follows it).
     - `root_finder`: an optimistix fixed-point solver or root finder (e.g.
@@ -139,6 +146,7 @@ class PRKMK(AbstractMethod):
     explicit_stages: Literal["auto", "unrolled", "loop"] = eqx.field(static=True, default="auto")
     iterate_until: Literal["round-off", "tolerance"] = eqx.field(static=True, default="round-off")
     compensated_sum: bool = eqx.field(static=True, default=True)
+    start_either_side: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         if not isinstance(self.bundle, AbstractBundle):
@@ -165,6 +173,8 @@ class PRKMK(AbstractMethod):
             raise ValueError(f"explicit_stages must be 'auto', 'unrolled' or 'loop', got {self.explicit_stages!r}.")
         if not isinstance(self.compensated_sum, bool):
             raise TypeError(f"compensated_sum must be True or False, got {self.compensated_sum!r}.")
+        if not isinstance(self.start_either_side, bool):
+            raise TypeError(f"start_either_side must be True or False, got {self.start_either_side!r}.")
         if self.iterate_until not in ("round-off", "tolerance"):
             raise ValueError(
                 "iterate_until must be 'round-off' (until the increments stop shrinking) or 'tolerance' (rtol/atol), "
@@ -250,7 +260,7 @@ class PRKMK(AbstractMethod):
         (see `carried_step`): Gᵢ = Kᵢ_prev + X(tₙ, yₙ) − X(tₙ₋₁, yₙ₋₁).
 
         With the stages solved to round-off by fixed-point iteration (the
-        default), the iteration starts on one side of Gᵢ or the other, at
+        default) and `start_either_side`, the iteration starts on one side of Gᵢ or the other, at
         Gᵢ ± Dᵢ with Dᵢ = Kᵢ_prev − X(tₙ₋₁, yₙ₋₁) (so that the − side is the
         field at the step's start), the side set by the parity of the
         lowest bits of yₙ's fiber (`_start_side`). At round-off, where
@@ -258,12 +268,13 @@ class PRKMK(AbstractMethod):
         start on the same side at every step makes the energy error drift
         the same way at every step; starts on either side at random cancel
         that drift (`benchmarks/energy_drift.py`). The O(h) offset costs
-        about one iteration a step more than starting at Gᵢ."""
+        about one iteration a step more than starting at Gᵢ, the start
+        otherwise."""
         previous_field, previous_stages = carried
         field_now = self.generator(vector_field, t, y, args)
         change = jax.tree.map(jnp.subtract, field_now, previous_field)
         guesses = tuple(jax.tree.map(jnp.add, stage, change) for stage in previous_stages)
-        if self.iterate_until != "round-off" or self.root_finder is not None:
+        if self.iterate_until != "round-off" or self.root_finder is not None or not self.start_either_side:
             return field_now, guesses
         side = _start_side(y.fiber)
         offsets = tuple(jax.tree.map(jnp.subtract, stage, previous_field) for stage in previous_stages)

@@ -14,7 +14,7 @@ import pytest
 
 import prkmk_jax as pk
 from prkmk_jax.made_of_steps import AbstractMadeOfSteps
-from prkmk_jax.reversible import summed_plainly
+from prkmk_jax.reversible import for_the_backward_pass
 from prkmk_jax.scenes import ForcedParameters, ForcedRigidBody, FreeRigidBody, HarmonicTorque, HeavyTop, TopParameters, random_rotation
 
 FREE, TOP = FreeRigidBody(), HeavyTop()
@@ -71,20 +71,22 @@ def test_reversible_gradient_equals_the_stored_one(name):
 
 
 @pytest.mark.parametrize("name", METHODS)
-def test_the_backward_pass_sums_every_prkmk_step_plainly(name):
+def test_the_backward_pass_sums_every_prkmk_step_plainly_from_the_guess(name):
     """The methods the backward pass undoes and differentiates with: the
     same, every PRKMK method in them (however nested) with
-    compensated_sum=False."""
+    compensated_sum=False and start_either_side=False."""
     _, method, _ = METHODS[name]
-    plain = summed_plainly(method)
+    plain = for_the_backward_pass(method)
 
     def prkmk_parts(m):
         return [m] if isinstance(m, pk.PRKMK) else prkmk_parts(m.method) if isinstance(m, AbstractMadeOfSteps) else []
 
     originals, plains = prkmk_parts(method), prkmk_parts(plain)
     assert len(plains) == len(originals)
-    assert all(p.compensated_sum is False for p in plains)
-    assert all(eqx.tree_equal(dataclasses.replace(o, compensated_sum=False), p) is True for o, p in zip(originals, plains))
+    assert all(p.compensated_sum is False and p.start_either_side is False for p in plains)
+    assert all(
+        eqx.tree_equal(dataclasses.replace(o, compensated_sum=False, start_either_side=False), p) is True for o, p in zip(originals, plains)
+    )
     assert type(plain) is type(method)
     if not originals:
         assert plain is method

@@ -45,9 +45,11 @@ def test_round_off_iteration_still_reports_a_failure():
     assert int(n) == 31
 
 
-def test_iterate_until_is_checked():
+def test_iterate_until_and_the_start_are_checked():
     with pytest.raises(ValueError, match="iterate_until must be 'round-off'"):
         pk.PRKMK(pk.Cotangent(pk.SO3), iterate_until="exact")  # pyright: ignore[reportArgumentType]
+    with pytest.raises(TypeError, match="start_either_side must be True or False"):
+        pk.PRKMK(pk.Cotangent(pk.SO3), start_either_side="yes")  # pyright: ignore[reportArgumentType]
 
 
 def _energy_errors(iterate_until, num_steps, batch=8, h=0.1, coordinates=pk.Exp(), signed=False):
@@ -107,15 +109,18 @@ def test_round_off_starts_each_stage_iteration_on_a_side_its_state_picks():
     """Solved to round-off, a step's stage iteration starts at G ± D (G the
     extrapolated guess, D the previous stage's offset from the previous
     field), the side flipping with the parity of the fiber's last bits;
-    stopped at the tolerance, at G. Checked on one step's carried values,
-    by exact arithmetic on small integers."""
+    stopped at the tolerance, or with start_either_side=False, at G.
+    Checked on one step's carried values, by exact arithmetic on small
+    integers."""
     scene = pk.scenes.FreeRigidBody()
     inertia = jnp.asarray([2.0, 3.0, 4.0])
     previous_field = (jnp.asarray([1.0, 2.0, 3.0]), jnp.zeros(3))
     previous_stages = tuple((previous_field[0] + k, jnp.zeros(3)) for k in (0.0, 0.5))
     fiber = jnp.asarray([4.0, 6.0, 8.0])  # Ω = (2, 2, 2); every lowest bit 0
-    for iterate_until, sides in (("round-off", (1, -1)), ("tolerance", (0, 0))):
-        method = pk.PRKMK(scene.bundle, pk.Exp(), pk.stormer_verlet, form="body", iterate_until=iterate_until)
+    for iterate_until, either_side, sides in (("round-off", True, (1, -1)), ("tolerance", True, (0, 0)), ("round-off", False, (0, 0))):
+        method = pk.PRKMK(
+            scene.bundle, pk.Exp(), pk.stormer_verlet, form="body", iterate_until=iterate_until, start_either_side=either_side
+        )
         for parity_flip, side in zip((False, True), sides):
             state_fiber = fiber.at[0].set(jnp.nextafter(fiber[0], 10.0)) if parity_flip else fiber
             y = pk.BundleElement(pk.SO3(jnp.eye(3)), state_fiber)
