@@ -17,7 +17,10 @@ attitudes; its gradient is taken with respect to the inertia, by
   and with `ReversibleAdjoint` (rebuilt from the last state, as above).
 
 At 10⁶ steps the stored splitting and `ReversibleAdjoint` are left out (the
-rows below show how they scale), to keep the run short.
+rows below show how they scale), to keep the run short. The same paths
+(but the stored splitting) also run at batch 1024 over 10³ steps, where
+the steps' arithmetic rather than the number of kernels each step
+launches sets the time.
 
 The batch is vmapped, as a user maps a single-trajectory loss. Each case
 runs in a process of its own, which reports
@@ -38,6 +41,7 @@ stored steps would need 1024 × 10⁶ × 96 bytes ≈ 98 GB.
 
     python benchmarks/gradients.py
     python benchmarks/gradients.py --quick   # tiny sizes, one process after the first case
+    python benchmarks/gradients.py --large-batch-only   # the batch-1024 rows again, into an earlier run's results
 """
 
 import json
@@ -157,17 +161,34 @@ def main(argv=None):
         jax.config.update("jax_enable_x64", True)
         print(json.dumps(measure(**json.loads(argv[1]))))
         return
-    args, out = C.cli(__doc__, argv)
+
+    def extra(parser):
+        parser.add_argument(
+            "--large-batch-only",
+            action="store_true",
+            help="only the rows at batch 1024, put into the results file of an earlier run on this machine",
+        )
+
+    args, out = C.cli(__doc__, argv, extra)
+    if args.quick and args.large_batch_only:
+        raise SystemExit("--large-batch-only measures the full run's batch-1024 rows; it has no --quick form.")
     if args.quick:
-        grid, batch, fit = ((20, 2),), 4, (8, 20)
+        grid, batch, fit, large = ((20, 2),), 4, (8, 20), None
     else:
-        grid, batch, fit = ((1_000, 5), (10_000, 3), (100_000, 2), (1_000_000, 0)), 64, (1024, 1_000_000)
+        grid, batch, fit, large = ((1_000, 5), (10_000, 3), (100_000, 2), (1_000_000, 0)), 64, (1024, 1_000_000), (1024, 1_000, 3)
     rows = []
-    print(f"{'path':62s} {'steps':>8s} {'temp MB':>9s} {'RSS MB':>15s} {'grad/fwd':>8s} {'compile s':>9s}")
+    print(f"{'path':62s} {'batch':>5s} {'steps':>8s} {'temp MB':>9s} {'RSS MB':>15s} {'grad/fwd':>8s} {'compile s':>9s}")
     cases = [(path, batch, steps, rounds) for steps, rounds in grid for path in PATHS]
     left_out = ("splitting, stored steps", "diffeqsolve, ReversibleAdjoint")
     cases = [c for c in cases if not (c[2] >= 1_000_000 and c[0] in left_out)]
+    # The time criterion at a batch where the step's arithmetic, not the
+    # number of kernels a step launches, sets the time (--quick: the same
+    # code as the rows above).
+    large_batch_cases = [] if large is None else [(path, *large) for path in PATHS if path != "splitting, stored steps"]
+    cases += large_batch_cases
     cases.append((FIT, fit[0], fit[1], 0))
+    if args.large_batch_only:
+        cases = large_batch_cases
     for case_number, (path, b, steps, rounds) in enumerate(cases):
         start = time.perf_counter()
         # --quick checks that every case runs: the first in a child as in a
@@ -177,10 +198,22 @@ def main(argv=None):
         temp = "–" if row["temp_bytes"] is None else f"{row['temp_bytes'] / 1e6:.2f}"
         rss = "/".join(f"{row['peak_rss_mb'][k]:.0f}" for k in ("compiled", "forward", "value_and_grad"))
         print(
-            f"{path:62s} {steps:8d} {temp:>9s} {rss:>15s} {row['gradient_over_forward']:8.2f} "
+            f"{path:62s} {b:5d} {steps:8d} {temp:>9s} {rss:>15s} {row['gradient_over_forward']:8.2f} "
             f"{row['compile_s']['value_and_grad']:9.2f}   ({time.perf_counter() - start:.0f} s)",
             flush=True,
         )
+    if args.large_batch_only:
+        with open(out / "gradients.json") as f:
+            earlier = json.load(f)
+        if earlier["machine"] != C.machine():
+            raise SystemExit(f"{out / 'gradients.json'} was measured on another machine or jax version; run the whole script instead.")
+        new = {(r["path"], r["batch"], r["steps"]) for r in rows}
+        kept = [r for r in earlier["rows"] if (r["path"], r["batch"], r["steps"]) not in new]
+        fit_at = next((k for k, r in enumerate(kept) if r["path"] == FIT), len(kept))
+        earlier["rows"] = kept[:fit_at] + rows + kept[fit_at:]
+        with open(out / "gradients.json", "w") as f:
+            json.dump(earlier, f, indent=1)
+        return
     with open(out / "gradients.json", "w") as f:
         json.dump(dict(machine=C.machine(), batch=batch, h=H, rows=rows), f, indent=1)
 

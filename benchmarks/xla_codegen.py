@@ -16,8 +16,10 @@ iterations each setting's `integrate` runs took in all. The tests compile with t
 Programs: the free rigid body on T*SO(3) (body form, h = 0.01, random
 attitudes and momenta), Störmer–Verlet and Lobatto IIIA–IIIB 4 through
 `integrate` (lax.scan) and `diffeqsolve`, the gradient of a loss of the final
-states in the inertia through both, and diffrax Tsit5 on the embedding
-ℝ⁹×ℝ³ as the peer.
+states in the inertia through both (through the stored steps, and with
+`ReversibleGradient` and `ReversibleAdjoint` beside the forward runs they
+are timed against, also for the Strang splitting), and diffrax Tsit5 on
+the embedding ℝ⁹×ℝ³ as the peer.
 
     python benchmarks/xla_codegen.py --out benchmarks/results
     python benchmarks/xla_codegen.py --quick
@@ -71,6 +73,24 @@ def _tsit5(steps):
     return run
 
 
+def _reversible(method_or_splitting, steps, adjoint):
+    """(Q₀, Π₀, inertia) -> (Q, Π): `integrate` with `ReversibleGradient(None)`,
+    or `diffeqsolve` with `ReversibleAdjoint(None)` (`adjoint=True`)."""
+    method = C.SCENE.splitting() if method_or_splitting == "splitting" else C.SCENE.method(getattr(pk, method_or_splitting))
+
+    def run(q0, pi0, inertia):
+        y0 = pk.BundleElement(pk.SO3(q0), pi0)
+        if adjoint:
+            t0, t1, dt = (jnp.asarray(x, q0.dtype) for x in (0.0, steps * H, H))
+            solver, how = pk.PRKMKSolver(method), pk.ReversibleAdjoint(None)
+            sol = diffrax.diffeqsolve(pk.PRKMKTerm(C.SCENE), solver, t0, t1, dt, y0, inertia, max_steps=steps, adjoint=how)
+            return sol.ys.base.matrix[-1], sol.ys.fiber[-1]
+        y = pk.integrate(method, C.SCENE, y0, 0.0, H, steps, inertia, save_every=steps, gradient=pk.ReversibleGradient(None)).ys
+        return y.base.matrix[-1], y.fiber[-1]
+
+    return run
+
+
 def _batched(run):
     return jax.vmap(run, in_axes=(0, 0, None))
 
@@ -98,6 +118,28 @@ def programs(quick):
         "Lobatto 4 diffeqsolve, batch 64": (_batched(_diffeqsolve("lobatto_iiia_iiib4", 200)), 64, 200, jnp.float64),
         "SV integrate, value_and_grad, batch 64": (_value_and_grad(_integrate("stormer_verlet", 200)), 64, 200, jnp.float64),
         "SV diffeqsolve, value_and_grad, batch 64": (_value_and_grad(_diffeqsolve("stormer_verlet", 200)), 64, 200, jnp.float64),
+        # The reversible gradients beside the forward runs they are timed against.
+        "SV integrate, batch 64": (_batched(_integrate("stormer_verlet", 200)), 64, 200, jnp.float64),
+        "SV integrate, ReversibleGradient, batch 64": (
+            _value_and_grad(_reversible("stormer_verlet", 200, adjoint=False)),
+            64,
+            200,
+            jnp.float64,
+        ),
+        "SV diffeqsolve, batch 64": (_batched(_diffeqsolve("stormer_verlet", 200)), 64, 200, jnp.float64),
+        "SV diffeqsolve, ReversibleAdjoint, batch 64": (
+            _value_and_grad(_reversible("stormer_verlet", 200, adjoint=True)),
+            64,
+            200,
+            jnp.float64,
+        ),
+        "splitting integrate, batch 64": (_batched(_reversible("splitting", 200, adjoint=False)), 64, 200, jnp.float64),
+        "splitting integrate, ReversibleGradient, batch 64": (
+            _value_and_grad(_reversible("splitting", 200, adjoint=False)),
+            64,
+            200,
+            jnp.float64,
+        ),
         "Tsit5 (embedding), batch 1024": (_batched(_tsit5(200)), 1024, 200, jnp.float64),
         "Tsit5 (embedding), batch 16384": (_batched(_tsit5(20)), 16384, 20, jnp.float64),
     }
