@@ -260,16 +260,16 @@ class PRKMK(AbstractMethod):
         (see `carried_step`): Gᵢ = Kᵢ_prev + X(tₙ, yₙ) − X(tₙ₋₁, yₙ₋₁).
 
         With the stages solved to round-off by fixed-point iteration (the
-        default) and `start_either_side`, the iteration starts on one side of Gᵢ or the other, at
-        Gᵢ ± Dᵢ with Dᵢ = Kᵢ_prev − X(tₙ₋₁, yₙ₋₁) (so that the − side is the
-        field at the step's start), the side set by the parity of the
-        lowest bits of yₙ's fiber (`_start_side`). At round-off, where
-        the iteration settles depends on the direction it comes from, and a
-        start on the same side at every step makes the energy error drift
-        the same way at every step; starts on either side at random cancel
-        that drift (`benchmarks/energy_drift.py`). The O(h) offset costs
-        about one iteration a step more than starting at Gᵢ, the start
-        otherwise."""
+        default) and `start_either_side`, the iteration starts on one side
+        of Gᵢ or the other, at Gᵢ ± Dᵢ with Dᵢ = Kᵢ_prev − X(tₙ₋₁, yₙ₋₁) (so
+        that the − side is the field at the step's start), the side set by
+        the parity of the lowest bits of yₙ's fiber (`_start_side`). At
+        round-off, where the iteration settles depends on the direction it
+        comes from, and a start on the same side at every step makes the
+        energy error drift the same way at every step; starts on either side
+        at random cancel that drift (`benchmarks/energy_drift.py`). The O(h)
+        offset costs about one iteration a step more than starting at Gᵢ,
+        the start otherwise."""
         previous_field, previous_stages = carried
         field_now = self.generator(vector_field, t, y, args)
         change = jax.tree.map(jnp.subtract, field_now, previous_field)
