@@ -108,7 +108,7 @@ def programs(quick):
     if quick:
         # One program: the script measures and compares every program alike.
         return {"SV diffeqsolve": (_batched(_diffeqsolve("stormer_verlet", 10)), 8, 10, jnp.float64)}
-    return {
+    found = {
         "SV integrate": (_batched(_integrate("stormer_verlet", 400)), 1, 400, jnp.float64),
         "SV integrate, batch 1024": (_batched(_integrate("stormer_verlet", 200)), 1024, 200, jnp.float64),
         "SV integrate, batch 1024, float32": (_batched(_integrate("stormer_verlet", 200)), 1024, 200, jnp.float32),
@@ -118,31 +118,20 @@ def programs(quick):
         "Lobatto 4 diffeqsolve, batch 64": (_batched(_diffeqsolve("lobatto_iiia_iiib4", 200)), 64, 200, jnp.float64),
         "SV integrate, value_and_grad, batch 64": (_value_and_grad(_integrate("stormer_verlet", 200)), 64, 200, jnp.float64),
         "SV diffeqsolve, value_and_grad, batch 64": (_value_and_grad(_diffeqsolve("stormer_verlet", 200)), 64, 200, jnp.float64),
-        # The reversible gradients beside the forward runs they are timed against.
-        "SV integrate, batch 64": (_batched(_integrate("stormer_verlet", 200)), 64, 200, jnp.float64),
-        "SV integrate, ReversibleGradient, batch 64": (
-            _value_and_grad(_reversible("stormer_verlet", 200, adjoint=False)),
-            64,
-            200,
-            jnp.float64,
-        ),
-        "SV diffeqsolve, batch 64": (_batched(_diffeqsolve("stormer_verlet", 200)), 64, 200, jnp.float64),
-        "SV diffeqsolve, ReversibleAdjoint, batch 64": (
-            _value_and_grad(_reversible("stormer_verlet", 200, adjoint=True)),
-            64,
-            200,
-            jnp.float64,
-        ),
-        "splitting integrate, batch 64": (_batched(_reversible("splitting", 200, adjoint=False)), 64, 200, jnp.float64),
-        "splitting integrate, ReversibleGradient, batch 64": (
-            _value_and_grad(_reversible("splitting", 200, adjoint=False)),
-            64,
-            200,
-            jnp.float64,
-        ),
-        "Tsit5 (embedding), batch 1024": (_batched(_tsit5(200)), 1024, 200, jnp.float64),
-        "Tsit5 (embedding), batch 16384": (_batched(_tsit5(20)), 16384, 20, jnp.float64),
     }
+    # The reversible gradients beside the forward runs they are timed against.
+    for name, fn in (
+        ("SV integrate, batch 64", _batched(_integrate("stormer_verlet", 200))),
+        ("SV integrate, ReversibleGradient, batch 64", _value_and_grad(_reversible("stormer_verlet", 200, adjoint=False))),
+        ("SV diffeqsolve, batch 64", _batched(_diffeqsolve("stormer_verlet", 200))),
+        ("SV diffeqsolve, ReversibleAdjoint, batch 64", _value_and_grad(_reversible("stormer_verlet", 200, adjoint=True))),
+        ("splitting integrate, batch 64", _batched(_reversible("splitting", 200, adjoint=False))),
+        ("splitting integrate, ReversibleGradient, batch 64", _value_and_grad(_reversible("splitting", 200, adjoint=False))),
+    ):
+        found[name] = (fn, 64, 200, jnp.float64)
+    found["Tsit5 (embedding), batch 1024"] = (_batched(_tsit5(200)), 1024, 200, jnp.float64)
+    found["Tsit5 (embedding), batch 16384"] = (_batched(_tsit5(20)), 16384, 20, jnp.float64)
+    return found
 
 
 def child(quick, repeats, out):
