@@ -12,6 +12,7 @@ Jacobi elliptic functions (`prkmk_jax.scenes.elliptic_momentum`), in
 """
 
 import argparse
+import json
 import os
 import platform
 import statistics
@@ -267,6 +268,17 @@ def machine():
         devices=[str(d) for d in jax.devices()],
         device_kind=jax.devices()[0].device_kind,
     )
+
+
+def earlier_results(path: Path) -> dict:
+    """The results file of an earlier run, which a script's partial rerun
+    adds rows to: refused where it was measured on another machine or jax
+    version, whose rows would not compare with the new ones."""
+    with open(path) as f:
+        earlier = json.load(f)
+    if earlier["machine"] != machine():
+        raise SystemExit(f"{path} was measured on another machine or jax version; run the whole script instead.")
+    return earlier
 
 
 RESULTS = Path(__file__).resolve().parent / "results"

@@ -354,10 +354,7 @@ def main(argv=None):
         return rows
 
     if args.rows:
-        with open(out / "round_off.json") as f:
-            earlier = json.load(f)
-        if earlier["machine"] != C.machine():
-            raise SystemExit(f"{out / 'round_off.json'} was measured on another machine or jax version; run the whole script instead.")
+        earlier = C.earlier_results(out / "round_off.json")
         rows = earlier["growth"]
         # A record written before the Dopri8 row carried its batch: the full run's, its first row's.
         earlier["dopri8"].setdefault("batch", rows[0]["batch"])
