@@ -47,18 +47,26 @@ FLAG = "--xla_cpu_use_fusion_emitters=false"
 SETTINGS = {"default": "", "no fusion emitters": FLAG}
 
 
-def _integrate(tableau, steps):
+def _method(name):
+    """The free body's method: the Strang splitting, or SV etc. by tableau name."""
+    return C.SCENE.splitting() if name == "splitting" else C.SCENE.method(getattr(pk, name))
+
+
+def _integrate(name, steps, gradient=None):
     """(Q₀, Π₀, inertia) -> (Q, Π, implicit iterations) through `integrate`."""
-    return C.integrate_final(C.SCENE.method(getattr(pk, tableau)), steps, H)
+    return C.integrate_final(_method(name), steps, H, gradient)
 
 
-def _diffeqsolve(tableau, steps):
-    solver = pk.PRKMKSolver(C.SCENE.method(getattr(pk, tableau)))
+def _diffeqsolve(name, steps, adjoint=None):
+    """(Q₀, Π₀, inertia) -> (Q, Π) through `diffeqsolve`, differentiated by
+    `adjoint` (diffrax's default `RecursiveCheckpointAdjoint` if None)."""
+    solver = pk.PRKMKSolver(_method(name))
+    adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
 
     def run(q0, pi0, inertia):
         y0 = pk.BundleElement(pk.SO3(q0), pi0)
         t0, t1, dt = (jnp.asarray(x, q0.dtype) for x in (0.0, steps * H, H))
-        sol = diffrax.diffeqsolve(pk.PRKMKTerm(C.SCENE), solver, t0, t1, dt, y0, inertia, max_steps=steps)
+        sol = diffrax.diffeqsolve(pk.PRKMKTerm(C.SCENE), solver, t0, t1, dt, y0, inertia, max_steps=steps, adjoint=adjoint)
         return sol.ys.base.matrix[-1], sol.ys.fiber[-1]
 
     return run
@@ -69,24 +77,6 @@ def _tsit5(steps):
         z0 = jnp.concatenate([q0.reshape(9), pi0])
         sol = diffrax.diffeqsolve(diffrax.ODETerm(C.embedding_rhs), diffrax.Tsit5(), 0.0, steps * H, H, z0, inertia, max_steps=steps)
         return C.from_vector(sol.ys[-1])
-
-    return run
-
-
-def _reversible(method_or_splitting, steps, adjoint):
-    """(Q₀, Π₀, inertia) -> (Q, Π): `integrate` with `ReversibleGradient(None)`,
-    or `diffeqsolve` with `ReversibleAdjoint(None)` (`adjoint=True`)."""
-    method = C.SCENE.splitting() if method_or_splitting == "splitting" else C.SCENE.method(getattr(pk, method_or_splitting))
-
-    def run(q0, pi0, inertia):
-        y0 = pk.BundleElement(pk.SO3(q0), pi0)
-        if adjoint:
-            t0, t1, dt = (jnp.asarray(x, q0.dtype) for x in (0.0, steps * H, H))
-            solver, how = pk.PRKMKSolver(method), pk.ReversibleAdjoint(None)
-            sol = diffrax.diffeqsolve(pk.PRKMKTerm(C.SCENE), solver, t0, t1, dt, y0, inertia, max_steps=steps, adjoint=how)
-            return sol.ys.base.matrix[-1], sol.ys.fiber[-1]
-        y = pk.integrate(method, C.SCENE, y0, 0.0, H, steps, inertia, save_every=steps, gradient=pk.ReversibleGradient(None)).ys
-        return y.base.matrix[-1], y.fiber[-1]
 
     return run
 
@@ -122,11 +112,11 @@ def programs(quick):
     # The reversible gradients beside the forward runs they are timed against.
     for name, fn in (
         ("SV integrate, batch 64", _batched(_integrate("stormer_verlet", 200))),
-        ("SV integrate, ReversibleGradient, batch 64", _value_and_grad(_reversible("stormer_verlet", 200, adjoint=False))),
+        ("SV integrate, ReversibleGradient, batch 64", _value_and_grad(_integrate("stormer_verlet", 200, pk.ReversibleGradient(None)))),
         ("SV diffeqsolve, batch 64", _batched(_diffeqsolve("stormer_verlet", 200))),
-        ("SV diffeqsolve, ReversibleAdjoint, batch 64", _value_and_grad(_reversible("stormer_verlet", 200, adjoint=True))),
-        ("splitting integrate, batch 64", _batched(_reversible("splitting", 200, adjoint=False))),
-        ("splitting integrate, ReversibleGradient, batch 64", _value_and_grad(_reversible("splitting", 200, adjoint=False))),
+        ("SV diffeqsolve, ReversibleAdjoint, batch 64", _value_and_grad(_diffeqsolve("stormer_verlet", 200, pk.ReversibleAdjoint(None)))),
+        ("splitting integrate, batch 64", _batched(_integrate("splitting", 200))),
+        ("splitting integrate, ReversibleGradient, batch 64", _value_and_grad(_integrate("splitting", 200, pk.ReversibleGradient(None)))),
     ):
         found[name] = (fn, 64, 200, jnp.float64)
     found["Tsit5 (embedding), batch 1024"] = (_batched(_tsit5(200)), 1024, 200, jnp.float64)
