@@ -35,6 +35,7 @@ from .method import (
     flag_nonfinite,
     largest_entry_difference,
     no_compensation,
+    varying_with,
 )
 from .splitting import Splitting
 from .step import PRKMK, static_combination
@@ -308,7 +309,7 @@ class Composition(AbstractMadeOfSteps):
             y_k, lost = compensated(sub.y, sub.rounding, lost)
             return (y_k, lost, first_failure(result, sub.result), iterations + sub.iterations), sub.carried
 
-        init = (y, no_compensation(y), RESULTS.successful, jnp.array(0, jnp.int32))
+        init = (y, *varying_with((no_compensation(y), RESULTS.successful, jnp.array(0, jnp.int32)), y))
         (y_next, lost, result, iterations), carried = jax.lax.scan(substep, init, (fractions, starts, carried))
         return Step(y_next, self.increment_between(y, y_next), result, iterations, lost if any(sums) else None, carried)
 

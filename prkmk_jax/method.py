@@ -97,11 +97,33 @@ def counted_step(method: "AbstractMethod", vector_field: VectorField, t0, dt, ar
 
 def counted_start(y: BundleElement, carried: Any, compensation: BundleElement | None = None):
     """The carry of `counted_step` before the first step (no compensation
-    yet, unless a continued run hands on its own)."""
+    yet, unless a continued run hands on its own), varying with `y`
+    (`varying_with`)."""
     zero = jnp.array(0, jnp.int32)
     if compensation is None:
         compensation = no_compensation(y)
-    return y, compensation, RESULTS.successful, zero, zero, carried
+    return y, *varying_with((compensation, RESULTS.successful, zero, zero, carried), y)
+
+
+def varying_with(tree: PyTree, reference: PyTree) -> PyTree:
+    """`tree` as it is, traced as a function of `reference`'s arrays.
+
+    For a loop's carry that starts as a constant (a zero, a counter, a
+    result) and that the loop body makes depend on the state: under `vmap`,
+    the batching rule of `lax.scan` and `lax.while_loop` finds such a carry
+    batched only by batching the loop body again, once more for each carry
+    it promotes, and each loop nested in that body again each time. Started
+    as a function of the batched state, the carry is batched from the
+    start, and the body is batched once: a saving in trace time that
+    multiplies with the depth of the nesting (a reversible backward pass
+    nests loops three deep). The dependence is a select on a predicate that
+    is always false, which XLA folds away.
+    """
+    leaves = [leaf for leaf in jax.tree.leaves(reference) if jnp.size(leaf) > 0]
+    if not leaves:
+        return tree
+    never = jnp.any(leaves[0] != leaves[0]) & False
+    return jax.tree.map(lambda x: jnp.where(never, x, x) if eqx.is_array(x) else x, tree)
 
 
 def no_compensation(y: BundleElement) -> BundleElement:

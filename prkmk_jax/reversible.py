@@ -27,7 +27,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from .made_of_steps import AbstractMadeOfSteps, Adjoint
-from .method import LOW_PRECISION_EPS, RESULTS, AbstractMethod, counted_start, counted_step, first_failure, largest_entry_difference
+from .method import (
+    LOW_PRECISION_EPS,
+    RESULTS,
+    AbstractMethod,
+    counted_start,
+    counted_step,
+    first_failure,
+    largest_entry_difference,
+    varying_with,
+)
 from .solver import PRKMKSolver, _user_clock
 from .splitting import Splitting
 from .step import PRKMK
@@ -278,7 +287,7 @@ def _run_and_undo_bwd(
     # stretch ends a save interval (the last of each), none otherwise.
     incoming = jax.tree.map(lambda g: by_chunk(jnp.zeros((num_saves, chunks_per_save) + g.shape[1:], g.dtype).at[:, -1].set(g)), grad_saved)
     firsts = steps_done + chunk * jnp.arange(total_chunks, dtype=jnp.int32)
-    init = (grad_last, params_grad0, RESULTS.successful, jnp.zeros((), jnp.result_type(*jax.tree.leaves(y0))))
+    init = varying_with((grad_last, params_grad0, RESULTS.successful, jnp.zeros((), jnp.result_type(*jax.tree.leaves(y0)))), kept)
     (cotangent, params_grad, result, worst), _ = jax.lax.scan(back_one_chunk, init, (kept_flat, starts, incoming, firsts), reverse=True)
     remedy = "give a smaller checkpoint_every (or save more often)"
     cotangent, (args_grad, field_grad) = _checked((cotangent, params_grad), result, worst, tolerance, f"{chunk} steps", remedy)
@@ -440,8 +449,16 @@ def _while_loop(cond_fun, body_fun, init_val, **kwargs):
     return jax.lax.while_loop(cond_fun, body_fun, init_val)
 
 
+def _step_loop(cond_fun, body_fun, init_val, **kwargs):
+    """diffrax's step loop as a plain `lax.while_loop`. The loop stops on
+    the solve's result, which the state sets, so under `vmap` every carry
+    of it ends up batched: each starts so (`varying_with`)."""
+    del kwargs
+    return jax.lax.while_loop(cond_fun, body_fun, varying_with(init_val, init_val.y))
+
+
 def _keeping_every(every: int, kept: list):
-    """diffrax's step loop as `_while_loop` does it, also keeping the state
+    """diffrax's step loop as `_step_loop` does it, also keeping the state
     after steps K, 2K, … (K = `every`) in a buffer of max_steps // K states,
     which it appends to `kept` (the loop's caller reads it from there)."""
 
@@ -458,7 +475,8 @@ def _keeping_every(every: int, kept: list):
             return state, jax.tree.map(lambda b, y: b.at[slot].set(y, mode="drop"), buffer, state.y)
 
         buffer = jax.tree.map(lambda y: jnp.zeros((slots,) + jnp.shape(y), jnp.result_type(y)), init_val.y)
-        final_state, buffer = jax.lax.while_loop(lambda carry: cond_fun(carry[0]), body, (init_val, buffer))
+        init = varying_with((init_val, buffer), init_val.y)
+        final_state, buffer = jax.lax.while_loop(lambda carry: cond_fun(carry[0]), body, init)
         kept.append(buffer)
         return final_state
 
@@ -475,14 +493,14 @@ def _run_diffrax_loop(y_args_terms, outer_while_loop, *, self, undo, init_state,
 
 @eqx.filter_custom_vjp
 def _diffrax_loop(y_args_terms, **kwargs):
-    return _run_diffrax_loop(y_args_terms, _while_loop, **kwargs)
+    return _run_diffrax_loop(y_args_terms, _step_loop, **kwargs)
 
 
 @_diffrax_loop.def_fwd
 def _diffrax_loop_fwd(perturbed, y_args_terms, **kwargs):
     del perturbed
     every, kept = kwargs["self"].checkpoint_every, []
-    final_state, aux_stats = _run_diffrax_loop(y_args_terms, _while_loop if every is None else _keeping_every(every, kept), **kwargs)
+    final_state, aux_stats = _run_diffrax_loop(y_args_terms, _step_loop if every is None else _keeping_every(every, kept), **kwargs)
     return (final_state, aux_stats), (final_state.y, final_state.num_steps, kept[0] if kept else None)
 
 
@@ -528,7 +546,7 @@ def _diffrax_loop_bwd(residuals, grad_out, perturbed, y_args_terms, *, self, und
     undo_carried = undo.initial_carried(field, direction * t1, y_last, args)
     params_grad0 = jax.tree.map(jnp.zeros_like, params_dynamic)
     worst0 = jnp.zeros((), jnp.result_type(*jax.tree.leaves(y0)))
-    init = (num_steps - 1, y_last, cotangent, params_grad0, undo_carried, RESULTS.successful, worst0)
+    init = (num_steps - 1, y_last, *varying_with((cotangent, params_grad0, undo_carried, RESULTS.successful, worst0), y_last))
     _, rebuilt, cotangent, params_grad, _, result, worst = jax.lax.while_loop(lambda carry: carry[0] >= 0, back_one_step, init)
     worst = jnp.maximum(worst, _reconstruction_gap(rebuilt, y0))
     tolerance = _tolerance(self.max_reconstruction_error, y0)

@@ -36,7 +36,7 @@ from jaxtyping import Array, PyTree
 from .bundles import AbstractBundle, AlgebraPair, BundleElement
 from .coordinates import AbstractCoordinates, Exp
 from .exact_sums import rounded_once_combination
-from .method import RESULTS, AbstractFieldOnBundle, AbstractMethod, Step, Time, VectorField, first_failure, flag_nonfinite
+from .method import RESULTS, AbstractFieldOnBundle, AbstractMethod, Step, Time, VectorField, first_failure, flag_nonfinite, varying_with
 from .stage_plan import COUPLED, Explicit, StageDependence, plan_stages, stage_dependence
 from .tableaus import PartitionedTableau, stormer_verlet
 
@@ -589,7 +589,7 @@ def _solve_fixed_point(settings, static, guess, dynamic):
         return z, relative_change(z, guess), jnp.array(1, jnp.int32)
     # NaN never compares below 1, so a non-finite iterate ends the loop too.
     inf = jnp.asarray(jnp.inf, dtype)
-    z, error, _, n = jax.lax.while_loop(keep_going, iterate, (guess, inf, inf, jnp.array(0, jnp.int32)))
+    z, error, _, n = jax.lax.while_loop(keep_going, iterate, (guess, *varying_with((inf, inf, jnp.array(0, jnp.int32)), guess)))
     if settings.until_round_off:
         # One more evaluation, outside the loop: XLA compiles the loop body
         # apart from the rest of the step and may round the same formula
@@ -638,7 +638,7 @@ def _solve_fixed_point_jvp(settings, static, primals, tangents):
             size = jnp.max(jnp.abs(new - x)) - settings.rtol * jnp.max(jnp.abs(new))
             return new, size, k + 1
 
-        x, _, _ = jax.lax.while_loop(keep_going, step, (b, jnp.asarray(jnp.inf, b.dtype), jnp.array(0, jnp.int32)))
+        x, _, _ = jax.lax.while_loop(keep_going, step, (b, *varying_with((jnp.asarray(jnp.inf, b.dtype), jnp.array(0, jnp.int32)), b)))
         return x
 
     z_dot = unflatten(jax.lax.custom_linear_solve(identity_minus_jacobian, flat_rhs, iterate_linear, iterate_linear))
