@@ -576,9 +576,9 @@ def _ends_with_an_evaluation(settings) -> bool:
 
 def _iterate(settings, closed_fn, guess):
     """The fixed-point iteration up to its last evaluation of fn: (x, error,
-    count). The solution is fn(x) where `_ends_with_an_evaluation` (the
-    error of a guess taken as the solution is then still to be measured:
-    None), x itself otherwise."""
+    count). The solution is fn(x) where `_ends_with_an_evaluation`, x
+    itself otherwise. A guess taken as the solution is returned with no
+    error yet (zero): `_finished` measures it."""
 
     def keep_going(carry):
         _, error, previous, n = carry
@@ -595,7 +595,7 @@ def _iterate(settings, closed_fn, guess):
         return new, _relative_change(settings, new, z), error, n + 1
 
     if settings.guess_solves:
-        return guess, None, jnp.array(1, jnp.int32)
+        return guess, jnp.zeros((), settings.dtype), jnp.array(1, jnp.int32)
     # NaN never compares below 1, so a non-finite iterate ends the loop too.
     inf = jnp.asarray(jnp.inf, settings.dtype)
     z, error, _, n = jax.lax.while_loop(keep_going, iterate, (guess, *varying_with((inf, inf, jnp.array(0, jnp.int32)), guess)))
