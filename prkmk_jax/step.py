@@ -559,26 +559,14 @@ class _IterationSettings(eqx.Module):
     guess_solves: bool = eqx.field(static=True)
 
 
-def _relative_change(settings, new, old):
-    """max |new − old|/(atol + rtol|new|) over the entries."""
-    ratios = [
-        jnp.max(jnp.abs(o - n) / (settings.atol + settings.rtol * jnp.abs(n))) for n, o in zip(jax.tree.leaves(new), jax.tree.leaves(old))
-    ]
-    return functools.reduce(jnp.maximum, ratios)
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
+def _solve_fixed_point(settings, static, guess, dynamic):
+    closed_fn = eqx.combine(dynamic, static)
+    rtol, atol, dtype = settings.rtol, settings.atol, settings.dtype
 
-
-def _ends_with_an_evaluation(settings) -> bool:
-    """Whether the solve's last evaluation of fn is outside the loop (the
-    solution is fn(x) for the x `_iterate` returns) rather than the loop's
-    last iterate."""
-    return settings.guess_solves or settings.until_round_off
-
-
-def _iterate(settings, closed_fn, guess):
-    """The fixed-point iteration up to its last evaluation of fn: (x, error,
-    count). The solution is fn(x) where `_ends_with_an_evaluation`, x
-    itself otherwise. A guess taken as the solution is returned with no
-    error yet (zero): `_finished` measures it."""
+    def relative_change(new, old):
+        ratios = [jnp.max(jnp.abs(o - n) / (atol + rtol * jnp.abs(n))) for n, o in zip(jax.tree.leaves(new), jax.tree.leaves(old))]
+        return functools.reduce(jnp.maximum, ratios)
 
     def keep_going(carry):
         _, error, previous, n = carry
@@ -592,59 +580,41 @@ def _iterate(settings, closed_fn, guess):
     def iterate(carry):
         z, error, _, n = carry
         new = closed_fn(z)
-        return new, _relative_change(settings, new, z), error, n + 1
+        return new, relative_change(new, z), error, n + 1
 
     if settings.guess_solves:
-        return guess, jnp.zeros((), settings.dtype), jnp.array(1, jnp.int32)
+        # Checked, not trusted: a guess that fn moves by more than the
+        # tolerance is not a solution, and the result says so.
+        z = closed_fn(guess)
+        return z, relative_change(z, guess), jnp.array(1, jnp.int32)
     # NaN never compares below 1, so a non-finite iterate ends the loop too.
-    inf = jnp.asarray(jnp.inf, settings.dtype)
+    inf = jnp.asarray(jnp.inf, dtype)
     z, error, _, n = jax.lax.while_loop(keep_going, iterate, (guess, *varying_with((inf, inf, jnp.array(0, jnp.int32)), guess)))
-    # Solved to round-off, one more evaluation follows, outside the loop: XLA
-    # compiles the loop body apart from the rest of the step and may round the
-    # same formula differently there (fusion, contraction). The step's update
-    # rounds as this evaluation does, so the slopes are closer to a fixed
-    # point of the arithmetic that makes the new state, and less of a
-    # rounding difference between the two biases every step the same way
-    # (`benchmarks/round_off.py` fits how a long run's energy error grows).
-    return z, error, n + 1 if settings.until_round_off else n
-
-
-def _finished(settings, x, z, error):
-    """The error of the solve whose last evaluation took x to z: a guess
-    taken as the solution is checked, not trusted (one that fn moves by more
-    than the tolerance is not a solution, and the result says so)."""
-    return _relative_change(settings, z, x) if settings.guess_solves else error
-
-
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
-def _solve_fixed_point(settings, static, guess, dynamic):
-    closed_fn = eqx.combine(dynamic, static)
-    x, error, n = _iterate(settings, closed_fn, guess)
-    if not _ends_with_an_evaluation(settings):
-        return x, error, n
-    z = closed_fn(x)
-    return z, _finished(settings, x, z, error), n
+    if settings.until_round_off:
+        # One more evaluation, outside the loop: XLA compiles the loop body
+        # apart from the rest of the step and may round the same formula
+        # differently there (fusion, contraction). The step's update rounds
+        # as this evaluation does, so the slopes are closer to a fixed point
+        # of the arithmetic that makes the new state, and less of a rounding
+        # difference between the two biases every step the same way
+        # (`benchmarks/round_off.py` fits how a long run's energy error grows).
+        z = closed_fn(z)
+        n = n + 1
+    return z, error, n
 
 
 @_solve_fixed_point.defjvp
 def _solve_fixed_point_jvp(settings, static, primals, tangents):
     guess, dynamic = primals
     _, dynamic_dot = tangents  # the solution does not depend on the guess
+    z, error, n = _solve_fixed_point(settings, static, guess, dynamic)
     closed_fn = eqx.combine(dynamic, static)
-    x, error, n = _iterate(settings, closed_fn, guess)
     # Named, so that a rematerialised step (`integrate` under reverse mode)
-    # keeps where the iteration ended instead of iterating to it again.
-    x = checkpoint_name(x, STAGE_SLOPES_NAME)
-    # ż = ∂fn/∂z·ż + ∂fn/∂θ·θ̇, i.e. (I − ∂fn/∂z)ż = rhs, linearised at x:
-    # the solution itself, or the point whose evaluation gives it, a fixed
-    # point to the same tolerance (or round-off). There, the solution and
-    # its derivative share one evaluation of fn.
-    evaluated, linearised = jax.linearize(closed_fn, x)
-    _, rhs = jax.jvp(lambda d: eqx.combine(d, static)(x), (dynamic,), (dynamic_dot,))
-    if _ends_with_an_evaluation(settings):
-        z, error = evaluated, _finished(settings, x, evaluated, error)
-    else:
-        z = x
+    # keeps the solution instead of iterating to it again.
+    z = checkpoint_name(z, STAGE_SLOPES_NAME)
+    # ż = ∂fn/∂z·ż + ∂fn/∂θ·θ̇, i.e. (I − ∂fn/∂z)ż = rhs.
+    _, rhs = jax.jvp(lambda d: eqx.combine(d, static)(z), (dynamic,), (dynamic_dot,))
+    _, linearised = jax.linearize(closed_fn, z)
     # One flat vector: custom_linear_solve's transpose needs every part of
     # the right-hand side to be linear in the tangents, and some parts of
     # a stage block (say L when η does not depend on the parameters) are
