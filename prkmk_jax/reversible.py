@@ -443,18 +443,17 @@ def _constant_step_ends(t0, t1, dt0):
 
 
 def _while_loop(cond_fun, body_fun, init_val, **kwargs):
-    """diffrax's loop hooks, as plain `lax.while_loop`s (not differentiated:
+    """A diffrax loop hook as a plain `lax.while_loop` (not differentiated:
     the backward pass is `_diffrax_loop`'s own)."""
     del kwargs
     return jax.lax.while_loop(cond_fun, body_fun, init_val)
 
 
 def _step_loop(cond_fun, body_fun, init_val, **kwargs):
-    """diffrax's step loop as a plain `lax.while_loop`. The loop stops on
-    the solve's result, which the state sets, so under `vmap` every carry
-    of it ends up batched: each starts so (`varying_with`)."""
-    del kwargs
-    return jax.lax.while_loop(cond_fun, body_fun, varying_with(init_val, init_val.y))
+    """diffrax's step loop as `_while_loop` runs it. The loop stops on the
+    solve's result, which the state sets, so under `vmap` every carry of it
+    ends up batched: each starts so (`varying_with`)."""
+    return _while_loop(cond_fun, body_fun, varying_with(init_val, init_val.y), **kwargs)
 
 
 def _keeping_every(every: int, kept: list):
