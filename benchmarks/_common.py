@@ -110,7 +110,7 @@ def prkmk_solver(tableau, coordinates="exp", adaptive=False, root_finder=None, *
     return pk.PRKMKSolver(SCENE.method(tableau, coords, root_finder=root_finder, **options), adaptive=adaptive)
 
 
-def integrate_final(method, steps, h, gradient=None):
+def integrate_final(method, steps, h, gradient=pk.StoredSteps()):
     """(Q₀, Π₀, inertia) -> (Q, Π, implicit iterations) after `steps` fixed
     steps of size `h` of `prkmk_jax.integrate` with `method` on T*SO(3)
     (differentiated by `gradient`, `integrate`'s argument)."""

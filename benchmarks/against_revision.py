@@ -92,7 +92,8 @@ def _runs(lib, tableau, coordinates, steps, scene="free body"):
 
     def integrate(q0, pi0, inertia, gradient=None):
         y0 = lib.BundleElement(lib.SO3(q0), pi0)
-        traj = lib.integrate(method, field, y0, 0.0, H, steps, inertia, save_every=steps, gradient=gradient)
+        given = {} if gradient is None else {"gradient": gradient}  # each revision's default otherwise
+        traj = lib.integrate(method, field, y0, 0.0, H, steps, inertia, save_every=steps, **given)
         return traj.ys.base.matrix[-1], traj.ys.fiber[-1]
 
     def diffeqsolve(q0, pi0, inertia, adjoint=None):

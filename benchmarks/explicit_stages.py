@@ -29,8 +29,8 @@ import numpy as np
 
 import _common as C
 import prkmk_jax as pk
+from prkmk_jax.methods.stage_plan import Explicit
 from prkmk_jax.scenes import FreeRigidBody, HeavyTop, SphericalTop, TopParameters
-from prkmk_jax.stage_plan import Explicit
 
 H = 0.01
 LEVER = np.array([0.1, 0.2, 0.9])

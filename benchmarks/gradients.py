@@ -6,7 +6,7 @@ of random attitudes). The loss is a weighted sum of the final momenta and
 attitudes; its gradient is taken with respect to the inertia, by
 `jax.value_and_grad` of
 
-- `integrate` with Störmer–Verlet, through the stored steps (`gradient=None`)
+- `integrate` with Störmer–Verlet, through the stored steps (`StoredSteps()`)
   and with `ReversibleGradient(checkpoint_every=None)` (the states rebuilt
   backwards from the last one, the only state kept; the SV step undone by
   its adjoint);
@@ -82,7 +82,7 @@ def _final_state(path, steps):
             return sol.ys.base.matrix[-1], sol.ys.fiber[-1]
 
         return through_diffeqsolve
-    gradient = pk.ReversibleGradient(checkpoint_every=None) if path.endswith("ReversibleGradient") else None
+    gradient = pk.ReversibleGradient(checkpoint_every=None) if path.endswith("ReversibleGradient") else pk.StoredSteps()
 
     def through_integrate(q0, pi0, inertia):
         y0 = pk.BundleElement(pk.SO3(q0), pi0)

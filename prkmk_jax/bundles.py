@@ -15,25 +15,24 @@ algebra elements are pairs `(x, y)` of base-algebra arrays.
 Algebra conventions are those of `groups.base`: brackets are commutators in
 a faithful matrix representation and every differential is right-trivialised.
 
-A bundle lifts any coordinate map of its base group to itself
-(`lifted_map`, `lifted_inverse_map`, `lifted_inverse_differential`,
-`lifted_multiply`): the map says what it is on G (`coordinates.base`), the
-bundle how its elements are built from that. So a coordinate map is written
-once for every bundle, and a bundle once for every map.
+A bundle lifts any coordinate map of its base group (a chart on G,
+`coordinates`) to itself (`map`, `inverse_map`, `inverse_differential`,
+`apply`, `apply_change`): the map says what it is on G, the bundle how its
+elements are built from that. So a coordinate map is written once for
+every bundle, and a bundle once for every map; the maps know nothing of
+bundles.
 """
 
 import abc
-from typing import TYPE_CHECKING, ClassVar, Literal, cast
+from typing import ClassVar, Literal, cast
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
+from .coordinates import AbstractCoordinates
 from .groups.base import AbstractLieGroup
-
-if TYPE_CHECKING:
-    from .coordinates import AbstractCoordinates
 
 Algebra = Float[Array, "..."]
 """An element of g or g* of the base group: any leading batch axes, then
@@ -41,7 +40,7 @@ Algebra = Float[Array, "..."]
 AlgebraPair = tuple[Algebra, Algebra]
 """(u, v) ∈ 𝔤 of a bundle group: the base's part and the fiber's."""
 Increment = tuple[Algebra, Algebra | None]
-"""(u, v) as `lifted_multiply` takes it: v None is a zero known at trace
+"""(u, v) as `apply` takes it: v None is a zero known at trace
 time, whose arithmetic the product skips."""
 
 
@@ -128,7 +127,7 @@ class AbstractBundle(eqx.Module):
 
     def zero_filled(self, U: Increment, y: BundleElement) -> AlgebraPair:
         """U with a fiber component None (a zero known at trace time, see
-        `lifted_multiply`) replaced by the zeros of the algebra at y."""
+        `apply`) replaced by the zeros of the algebra at y."""
         u, v = U
         return u, self.algebra_zeros(y)[1] if v is None else v
 
@@ -149,23 +148,37 @@ class AbstractBundle(eqx.Module):
     def bracket(self, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
         """The bracket of the bundle algebra."""
 
-    # --- a coordinate map of the base, lifted (`coordinates.base`) ---------------------
+    # --- a coordinate map of the base, lifted ------------------------------------------
+    def check_coordinates(self, coordinates: AbstractCoordinates) -> None:
+        """Raise `TypeError` if `coordinates` do not exist on this bundle's base."""
+        coordinates.check_group(self.base)
+
+    def inverse_differential(
+        self, coordinates: AbstractCoordinates, U: AlgebraPair, X: AlgebraPair, method_order: int | None = None
+    ) -> AlgebraPair:
+        """df⁻¹_U(X), the right-hand side of the algebra equation
+        U' = df⁻¹_U(ξ, η) of Algorithm 4.2: exact (`method_order` None), or
+        truncated as `coordinates.resolve_truncation(method_order)` says
+        (a series in this bundle's bracket)."""
+        truncation = None if method_order is None else coordinates.resolve_truncation(method_order)
+        if truncation is None:
+            return self.exact_inverse_differential(coordinates, U, X)
+        return coordinates.truncated_inverse_differential(self.bracket, U, X, truncation)
+
     @abc.abstractmethod
-    def lifted_map(self, coordinates: "AbstractCoordinates", U: AlgebraPair) -> BundleElement:
+    def map(self, coordinates: AbstractCoordinates, U: AlgebraPair) -> BundleElement:
         """f(U) for the coordinate map f of the bundle built on `coordinates`."""
 
     @abc.abstractmethod
-    def lifted_inverse_map(self, coordinates: "AbstractCoordinates", a: BundleElement) -> AlgebraPair:
+    def inverse_map(self, coordinates: AbstractCoordinates, a: BundleElement) -> AlgebraPair:
         """f⁻¹(a): the U near 0 with f(U) = a."""
 
     @abc.abstractmethod
-    def lifted_inverse_differential(self, coordinates: "AbstractCoordinates", U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
+    def exact_inverse_differential(self, coordinates: AbstractCoordinates, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
         """Exact df⁻¹_U(X)."""
 
     @abc.abstractmethod
-    def lifted_multiply(
-        self, coordinates: "AbstractCoordinates", U: Increment, y: BundleElement, form: Literal["space", "body"]
-    ) -> BundleElement:
+    def apply(self, coordinates: AbstractCoordinates, U: Increment, y: BundleElement, form: Literal["space", "body"]) -> BundleElement:
         """y·f(U) (`form="body"`) or f(U)·y (`"space"`), without forming f(U)
         where the product only needs its action.
 
@@ -178,10 +191,10 @@ class AbstractBundle(eqx.Module):
         measures it)."""
 
     @abc.abstractmethod
-    def lifted_change(
-        self, coordinates: "AbstractCoordinates", U: Increment, y: BundleElement, form: Literal["space", "body"]
+    def apply_change(
+        self, coordinates: AbstractCoordinates, U: Increment, y: BundleElement, form: Literal["space", "body"]
     ) -> BundleElement:
-        """`lifted_multiply` minus y, computed with y kept out of every sum:
+        """`apply` minus y, computed with y kept out of every sum:
         a container shaped as y holding the change of each of its arrays
         (not a bundle element), rounded relative to the change rather than
         to y. A step adds it to y and carries the sum's rounding on
@@ -203,19 +216,19 @@ class DirectProduct(AbstractBundle):
     def bracket(self, U, X):
         return self.base.bracket(U[0], X[0]), jnp.zeros_like(X[1])
 
-    def lifted_map(self, coordinates, U):
+    def map(self, coordinates, U):
         return BundleElement(coordinates.group_map(self.base, U[0]), U[1])
 
-    def lifted_inverse_map(self, coordinates, a):
+    def inverse_map(self, coordinates, a):
         return coordinates.group_inverse_map(a.base), a.fiber
 
-    def lifted_inverse_differential(self, coordinates, U, X):
+    def exact_inverse_differential(self, coordinates, U, X):
         return coordinates.group_inverse_differential(self.base, U[0], X[0]), X[1]
 
-    def lifted_multiply(self, coordinates, U, y, form):
-        return _multiply_in_form(self, self.lifted_map(coordinates, self.zero_filled(U, y)), y, form)
+    def apply(self, coordinates, U, y, form):
+        return _multiply_in_form(self, self.map(coordinates, self.zero_filled(U, y)), y, form)
 
-    def lifted_change(self, coordinates, U, y, form):
+    def apply_change(self, coordinates, U, y, form):
         u, v = self.zero_filled(U, y)
         return BundleElement(y.base.product_change(coordinates.group_map_change(self.base, u), _side(form)), v)
 
@@ -235,19 +248,19 @@ class Cartesian(AbstractBundle):
     def bracket(self, U, X):
         return self.base.bracket(U[0], X[0]), self.base.bracket(U[1], X[1])
 
-    def lifted_map(self, coordinates, U):
+    def map(self, coordinates, U):
         return BundleElement(coordinates.group_map(self.base, U[0]), coordinates.group_map(self.base, U[1]))
 
-    def lifted_inverse_map(self, coordinates, a):
+    def inverse_map(self, coordinates, a):
         return coordinates.group_inverse_map(a.base), coordinates.group_inverse_map(a.fiber)
 
-    def lifted_inverse_differential(self, coordinates, U, X):
+    def exact_inverse_differential(self, coordinates, U, X):
         return coordinates.group_inverse_differential(self.base, U[0], X[0]), coordinates.group_inverse_differential(self.base, U[1], X[1])
 
-    def lifted_multiply(self, coordinates, U, y, form):
-        return _multiply_in_form(self, self.lifted_map(coordinates, self.zero_filled(U, y)), y, form)
+    def apply(self, coordinates, U, y, form):
+        return _multiply_in_form(self, self.map(coordinates, self.zero_filled(U, y)), y, form)
 
-    def lifted_change(self, coordinates, U, y, form):
+    def apply_change(self, coordinates, U, y, form):
         u, v = self.zero_filled(U, y)
         side = _side(form)
         return BundleElement(
@@ -260,7 +273,7 @@ class AbstractSemidirect(AbstractBundle):
     """G ⋉ g with the lifted product (2.4) in left or right trivialisation.
 
     A coordinate map lifts as f(u, v) = (φ(u), ψ_{∓u} v) (left/right), with φ
-    and ψ the map's (`coordinates.base`): for the exponential
+    and ψ the map's (`coordinates`): for the exponential
     exp(u, v) = (exp(u), dexp_{∓u} v), the trivialised differential of the base
     exp (Table 2.2); for Cayley the §4.4 form (`coordinates.cayley`).
     """
@@ -290,25 +303,25 @@ class AbstractSemidirect(AbstractBundle):
         br = self.base.bracket
         return br(u, x), br(u, y) - br(x, v)
 
-    def lifted_map(self, coordinates, U):
+    def map(self, coordinates, U):
         u, v = U
         return BundleElement(coordinates.group_map(self.base, u), coordinates.fiber_map(self.base, u, v, self._sign()))
 
-    def lifted_inverse_map(self, coordinates, a):
+    def inverse_map(self, coordinates, a):
         u = coordinates.group_inverse_map(a.base)
         return u, coordinates.fiber_map_inverse(self.base, u, a.fiber, self._sign())
 
-    def lifted_inverse_differential(self, coordinates, U, X):
-        return coordinates.semidirect_inverse_differential(self, U, X)
+    def exact_inverse_differential(self, coordinates, U, X):
+        return coordinates.semidirect_inverse_differential(self.base, self._sign(), U, X)
 
-    def lifted_multiply(self, coordinates, U, y, form):
+    def apply(self, coordinates, U, y, form):
         u, v = U
         base = self.base
         fiber_part = None if v is None else coordinates.fiber_map(base, u, v, self._sign())
         g = coordinates.group_map(base, u)
         return self._multiply_increment(y, g, fiber_part, lambda x, sign: coordinates.group_adjoint(base, u, x, sign), form)
 
-    def lifted_change(self, coordinates, U, y, form):
+    def apply_change(self, coordinates, U, y, form):
         # The fiber of `_multiply_increment` minus y's: where the action
         # moves y's fiber, its change Ad_{φ(u)^{±1}} μ − μ; where it does
         # not, the added part alone.
@@ -334,7 +347,7 @@ class AbstractSemidirect(AbstractBundle):
         left = self.trivialization == "left"
         if form == "body":  # y·(g, w)
             fiber = act(y.fiber, -1.0) if left else y.fiber
-            if w is not None:  # None: w = 0 (`lifted_multiply`)
+            if w is not None:  # None: w = 0 (`apply`)
                 fiber = fiber + (w if left else y.base.adjoint(w))
             return BundleElement(y.base.multiply(g), fiber)
         # (g, w)·y

@@ -36,9 +36,9 @@ from jaxtyping import Array, Float, PyTree
 
 from .bundles import BundleElement
 from .coordinates import AbstractCoordinates
+from .fields import AbstractFieldOnBundle
 from .groups._util import drifted
 from .groups.so3 import SO3
-from .method import AbstractFieldOnBundle
 
 Packed = Float[Array, "d *batch"]
 """A state packed with its components first: one row per entry (for T*SO(3):

@@ -1,4 +1,7 @@
-"""Fixed-step integration of a PRKMK method with `lax.scan`."""
+"""Fixed-step runs of any method: `integrate` from a state, `resume` from
+where a run stopped. Each is compiled once per shape of its inputs
+(`eqx.filter_jit`, as `diffrax.diffeqsolve` is); the loop and what reverse
+mode keeps are the gradient strategy's (`gradients`)."""
 
 import equinox as eqx
 import jax
@@ -8,9 +11,10 @@ from jax.core import Tracer
 from jaxtyping import Array, Float, Int, PyTree, Real
 
 from .bundles import BundleElement
-from .method import RESULTS, AbstractMethod, Time, VectorField, checked_field_args, counted_start, counted_step, no_compensation
-from .reversible import ReversibleGradient, reversible_run
-from .step import STAGE_SLOPES_NAME
+from .fields import Time, VectorField
+from .gradients import AbstractGradient, StoredSteps
+from .loop import checked_start
+from .methods.base import RESULTS, AbstractMethod, no_compensation
 
 
 class Continuation(eqx.Module):
@@ -83,13 +87,13 @@ def integrate(
     *,
     save_every: int = 1,
     throw: bool = True,
-    gradient: ReversibleGradient | None = None,
+    gradient: AbstractGradient = StoredSteps(),
 ) -> Trajectory:
     """Integrate from `t0` with `num_steps` steps of size `dt`, saving `y0`
     and every `save_every`-th state.
 
-    Pure and jittable (wrap it in `jax.jit`/`eqx.filter_jit` with the
-    integers static), differentiable with respect to `y0` and `args`, and
+    Compiled once per shape of its inputs (`eqx.filter_jit`: arrays are
+    traced, Python numbers and the method are static), differentiable with respect to `y0` and `args`, and
     `vmap`-able over batches of `y0` and `args`. With `throw=True` a failed
     implicit stage or a non-finite state raises at run time; otherwise it is
     reported in `Trajectory.result`.
@@ -102,14 +106,22 @@ def integrate(
     way. To continue the run later, pass `Trajectory.continuation` to
     `resume`.
 
-    `gradient`: None differentiates through the stored steps (reverse mode
-    keeps every step's state and stage slopes); `ReversibleGradient()`
-    keeps only the saved states (and its checkpoints) and reconstructs the
-    others backwards, for memory that does not grow with the number of
-    steps (`reversible`).
+    `gradient`: `StoredSteps()` (the default) differentiates through the
+    stored steps (reverse mode keeps every step's state and stage slopes);
+    `ReversibleGradient()` keeps only the saved states (and its
+    checkpoints) and rebuilds the others backwards, for memory that does
+    not grow with the number of steps (`gradients`).
     """
     _check_method(method)
-    y0, t0, dt, args = _checked_start(method, vector_field, y0, t0, dt, args)
+    _check_dt_value(dt)
+    num_steps, save_every = _checked_counts(num_steps, save_every)
+    return _integrate(method, vector_field, y0, _traced(t0), _traced(dt), num_steps, args, save_every, throw, gradient)
+
+
+@eqx.filter_jit
+def _integrate(method, vector_field, y0, t0, dt, num_steps, args, save_every, throw, gradient) -> Trajectory:
+    y0, t0, args = checked_start(method, vector_field, y0, t0, args)
+    dt = _checked_dt(dt, t0.dtype)
     carried = method.initial_carried(vector_field, t0, y0, args)
     start = Continuation(y0, t0, dt, jnp.array(0, jnp.int32), carried, no_compensation(y0))
     return _run(method, vector_field, start, num_steps, args, save_every, throw, gradient)
@@ -124,7 +136,7 @@ def resume(
     *,
     save_every: int = 1,
     throw: bool = True,
-    gradient: ReversibleGradient | None = None,
+    gradient: AbstractGradient = StoredSteps(),
 ) -> Trajectory:
     """Continue a run of `integrate` (or of `resume`) for `num_steps` more
     steps from its `Trajectory.continuation`.
@@ -149,13 +161,28 @@ def resume(
         raise TypeError(
             f"continuation must be a Trajectory's `continuation`, got {type(continuation).__name__}; to start from a state, use integrate."
         )
+    num_steps, save_every = _checked_counts(num_steps, save_every)
+    return _resume(method, vector_field, continuation, num_steps, args, save_every, throw, gradient)
+
+
+@eqx.filter_jit
+def _resume(method, vector_field, continuation: Continuation, num_steps, args, save_every, throw, gradient) -> Trajectory:
     c = continuation
-    y, t, dt, args = _checked_start(method, vector_field, c.y, c.t0 + c.steps_done * c.dt, c.dt, args)
+    y, t, args = checked_start(method, vector_field, c.y, c.t0 + c.steps_done * c.dt, args)
+    dt = _checked_dt(c.dt, t.dtype)
     expected = jax.tree.structure(eqx.filter_eval_shape(method.initial_carried, vector_field, t, y, args))
     if jax.tree.structure(continuation.carried) != expected:
         raise TypeError("the continuation comes from another method (what it carries has another structure).")
     start = eqx.tree_at(lambda c: (c.y, c.dt), continuation, (y, dt))
     return _run(method, vector_field, start, num_steps, args, save_every, throw, gradient)
+
+
+def _checked_counts(num_steps, save_every) -> tuple[int, int]:
+    """The step and save counts as Python ints, static to the compiled run."""
+    num_steps, save_every = _static_count("num_steps", num_steps), _static_count("save_every", save_every)
+    if num_steps % save_every:
+        raise ValueError(f"save_every={save_every} must divide num_steps={num_steps}.")
+    return num_steps, save_every
 
 
 def _check_method(method) -> None:
@@ -166,60 +193,32 @@ def _check_method(method) -> None:
         )
 
 
-def _checked_start(method, vector_field, y, t, dt, args):
-    """The checks both entry points make before a run: the state (static and
-    run-time), dt, args and the vector field's output at the start time t,
-    with t and dt in the state's dtype. Returns (y, t, dt, args)."""
-    y = method.bundle.check(y)
-    dtype = jnp.result_type(*jax.tree.leaves(y))
-    t = jnp.asarray(t, dtype)
-    dt = _checked_dt(dt, dtype)
-    method.check_fits(vector_field)
-    args = checked_field_args(vector_field, args)
-    method.check_vector_field(vector_field, t, y, args)
-    return y, t, dt, args
+def _traced(x):
+    """A Python number as an array, so that the compiled run takes it as an
+    argument (one compilation for every value, and no constant that XLA
+    folds with another rounding than `resume` computes with)."""
+    return jnp.asarray(x) if isinstance(x, (int, float, np.number)) and not isinstance(x, bool) else x
+
+
+def _check_dt_value(dt) -> None:
+    """A dt known before the run (not traced) must be > 0: said at once."""
+    if _is_concrete(dt) and not float(dt) > 0:
+        raise ValueError(f"dt must be > 0 and finite, got {dt}.")
 
 
 def _checked_dt(dt, dtype) -> Array:
-    if _is_concrete(dt):
-        if not float(dt) > 0:
-            raise ValueError(f"dt must be > 0 and finite, got {dt}.")
     dt = jnp.asarray(dt, dtype)
     return eqx.error_if(dt, ~(dt > 0), "dt must be > 0 and finite.")
 
 
-def _run(method, vector_field, start: Continuation, num_steps, args, save_every, throw, gradient=None) -> Trajectory:
-    num_steps, save_every = _static_count("num_steps", num_steps), _static_count("save_every", save_every)
-    if num_steps % save_every:
-        raise ValueError(f"save_every={save_every} must divide num_steps={num_steps}.")
-    t0, dt = start.t0, start.dt
-    if gradient is not None:
-        if not isinstance(gradient, ReversibleGradient):
-            raise TypeError(f"gradient must be None (through the stored steps) or ReversibleGradient(...), got {gradient!r}.")
-        num_saves = num_steps // save_every
-        y, compensation, carried = start.y, start.compensation, start.carried
-        saved, last, result, total, worst, carried = reversible_run(
-            method, vector_field, y, compensation, carried, t0, dt, start.steps_done, args, num_saves, save_every, gradient
-        )
-        return _trajectory(start, saved, last, result, total, worst, carried, num_saves, save_every, throw)
-
-    # Under reverse mode a scanned step would store every intermediate of
-    # every step (hundreds of per-trajectory scalars); rematerialised, it
-    # stores the state and the implicit stages' solutions only, and the
-    # backward pass re-runs the explicit arithmetic (`throughput.py`
-    # measures the gradient's cost).
-    saved = jax.checkpoint_policies.save_only_these_names(STAGE_SLOPES_NAME)
-    step_fn = jax.checkpoint(counted_step(method, vector_field, t0, dt, args), prevent_cse=False, policy=saved)
-
-    def one_save(carry, first):
-        carry, _ = jax.lax.scan(step_fn, carry, first + jnp.arange(save_every, dtype=jnp.int32))
-        return carry, carry[0]
-
-    init = counted_start(start.y, start.carried, start.compensation)
+def _run(method, vector_field, start: Continuation, num_steps, args, save_every, throw, gradient) -> Trajectory:
+    if not isinstance(gradient, AbstractGradient):
+        raise TypeError(f"gradient must be StoredSteps() (the default) or ReversibleGradient(...), got {gradient!r}.")
     num_saves = num_steps // save_every
-    save_steps = start.steps_done + save_every * jnp.arange(num_saves + 1, dtype=jnp.int32)
-    (y_last, compensation, result, total, worst, carried), saved = jax.lax.scan(one_save, init, save_steps[:-1])
-    return _trajectory(start, saved, (y_last, compensation), result, total, worst, carried, num_saves, save_every, throw)
+    saved, last, result, total, worst, carried = gradient.run(
+        method, vector_field, start.y, start.compensation, start.carried, start.t0, start.dt, start.steps_done, args, num_saves, save_every
+    )
+    return _trajectory(start, saved, last, result, total, worst, carried, num_saves, save_every, throw)
 
 
 def _trajectory(start: Continuation, saved, last, result, total, worst, carried, num_saves, save_every, throw) -> Trajectory:

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, PyTree
 
 from .bundles import AlgebraPair, BundleElement
-from .method import AbstractMethod
+from .methods.base import AbstractMethod
 
 
 class OnGroupInterpolation(diffrax.AbstractLocalInterpolation):

@@ -27,9 +27,9 @@ from .bundles import AbstractBundle, Cartesian, Cotangent, DirectProduct
 from .coordinates import Cayley, Exp
 from .groups import SO3, SOn
 from .integrate import integrate
+from .methods import PRKMK, RESULTS
 from .scenes import AbstractScene
 from .scenes import rigid_body as rb
-from .step import PRKMK, RESULTS
 from .tableaus import PartitionedTableau, stormer_verlet, symplectic_euler
 
 COORDINATES = {"exp": Exp(), "cayley": Cayley()}

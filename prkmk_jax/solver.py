@@ -16,7 +16,8 @@ from jaxtyping import Array
 
 from .bundles import AlgebraPair, BundleElement
 from .interpolation import OnGroupInterpolation
-from .method import AbstractMethod, checked_field_args, compensated, first_failure, no_compensation, tree_scale
+from .loop import checked_start
+from .methods.base import AbstractMethod, compensated, first_failure, no_compensation, tree_scale
 
 DENSE_OUTPUT_TRUNCATION_ORDER = 4
 """Dense output evaluates df⁻¹ at the step's end truncated as for a method of
@@ -101,7 +102,7 @@ class PRKMKSolver(diffrax.AbstractSolver):
     `Solution.evaluate`) is `OnGroupInterpolation`, of order min(p, 3).
     Gradients: `RecursiveCheckpointAdjoint` (default), `DirectAdjoint`,
     `ForwardMode`, and `ReversibleAdjoint` for fixed steps (the states
-    rebuilt backwards, `reversible.py`). `BacksolveAdjoint` is refused, with this library's message,
+    rebuilt backwards, `reversible_adjoint`). `BacksolveAdjoint` is refused, with this library's message,
     when its backward solve starts: that solve hands the solver diffrax's
     adjoint term and an augmented Euclidean state (its continuous adjoint
     treats the state as Euclidean). Its forward solve is the plain solve.
@@ -157,15 +158,10 @@ class PRKMKSolver(diffrax.AbstractSolver):
     def init(self, terms, t0, t1, y0, args):
         term = _check_terms(terms, y0)
         method, field = self.method, _user_clock(terms)
-        method.check_fits(term.vector_field)
         # Static type/shape errors now; the run-time checks of the data (a
-        # finite, orthogonal, det +1 base) act through the checked value, so
-        # the solver state is computed from it: an invalid y0 raises.
-        y0 = method.bundle.check(y0)
-        # A scene's parameters: static errors now, run-time checks through the
-        # checked value (kept alive below, with y0's).
-        checked_args = checked_field_args(term.vector_field, args)
-        method.check_vector_field(field, field.direction * t0, y0, args)
+        # finite, orthogonal, det +1 base; a scene's parameters) act through
+        # the checked values, kept alive below: an invalid y0 raises.
+        y0, _, checked_args = checked_start(method, term.vector_field, y0, field.direction * t0, args, called=field)
         # The solver state is what a step carries (`Step.carried`): the
         # previous step's field at its start and its stage slopes, the implicit
         # stages' starting guesses (as in `integrate`).

@@ -158,7 +158,7 @@ def assert_generator_matches_embedding(scene, t, y, args, atol=1e-13):
     xi, eta = scene(t, y, args)
 
     def moved(s):
-        return scene.to_embedding(scene.bundle.multiply(y, pk.Exp().map(scene.bundle, (s * xi, s * eta))))
+        return scene.to_embedding(scene.bundle.multiply(y, scene.bundle.map(pk.Exp(), (s * xi, s * eta))))
 
     _, velocity = jax.jvp(moved, (0.0,), (1.0,))
     np.testing.assert_allclose(velocity, scene.embedding_field(t, scene.to_embedding(y), args), atol=atol)

@@ -60,7 +60,7 @@ SCRIPT = textwrap.dedent(
 
     shared = jnp.asarray(INERTIA)
     value_and_grad = jax.jit(jax.value_and_grad(loss), static_argnums=(2, 3))
-    for gradient in (None, pk.ReversibleGradient()):
+    for gradient in (pk.StoredSteps(), pk.ReversibleGradient()):
         plain = value_and_grad(shared, y0s, jax.vmap, gradient)
         sharded = value_and_grad(shared, pk.shard_batch(y0s), pk.vmap_over_devices, gradient)
         for a, b in zip(plain, sharded):

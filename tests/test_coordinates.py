@@ -15,10 +15,10 @@ COORDINATES = {"exp": pk.Exp(truncation=None), "cayley": pk.Cayley(truncation=No
 
 def _differential(bundle, coords, U, V):
     """X = d/dt f(U + tV) f(U)⁻¹ |_{t=0}, by forward-mode autodiff."""
-    f_inv = bundle.inverse(coords.map(bundle, U))
+    f_inv = bundle.inverse(bundle.map(coords, U))
 
     def moved(W):
-        return bundle.multiply(coords.map(bundle, W), f_inv)
+        return bundle.multiply(bundle.map(coords, W), f_inv)
 
     return tangent_to_algebra(bundle, jax.jvp(moved, (U,), (V,))[1])
 
@@ -32,7 +32,7 @@ def test_exact_inverse_differential_matches_autodiff(name, coords_name, scale):
     U = bundle_algebra(bundle, scale * rng.normal(size=6), scale * rng.normal(size=6))
     V = bundle_algebra(bundle, rng.normal(size=6), rng.normal(size=6))
     X = _differential(bundle, coords, U, V)
-    back = coords.inverse_differential(bundle, U, X, method_order=4)
+    back = bundle.inverse_differential(coords, U, X, method_order=4)
     assert max_leaf_difference(back, V) < 1e-12
 
 
@@ -56,8 +56,8 @@ def test_truncated_series_error_rate(name, q):
     errs = []
     for s in scales:
         U = jax.tree.map(lambda u: s * u, U1)
-        exact = pk.Exp().exact_inverse_differential(bundle, U, X)
-        errs.append(max_leaf_difference(pk.Exp(truncation=q).inverse_differential(bundle, U, X, 4), exact))
+        exact = bundle.inverse_differential(pk.Exp(), U, X)
+        errs.append(max_leaf_difference(bundle.inverse_differential(pk.Exp(truncation=q), U, X, 4), exact))
     errs = np.asarray(errs)
     if np.all(errs < 1e-14):  # abelian directions: the series is exact (e.g. over ℝ³)
         assert bundle.base is pk.VectorSpace
@@ -96,12 +96,12 @@ def test_semidirect_cayley_is_the_section_4_4_map():
     written out for SO(3): (I + ½û)⁻¹ = (I − ½û + ¼uuᵀ)/(1 + |u|²/4)."""
     rng = np.random.default_rng(5)
     u, v = jnp.asarray(rng.normal(size=3)), jnp.asarray(rng.normal(size=3))
-    y = pk.Cayley().map(pk.Semidirect(pk.SO3, "left"), (u, v))
+    y = pk.Semidirect(pk.SO3, "left").map(pk.Cayley(), (u, v))
     inv = (jnp.eye(3) - pk.hat(u) / 2 + jnp.outer(u, u) / 4) / (1 + u @ u / 4)
     np.testing.assert_allclose(y.fiber, inv @ v, atol=1e-14)
     np.testing.assert_allclose(y.base.matrix, pk.SO3.cayley(u).matrix, atol=1e-14)
     # and (I − ½ad_u)⁻¹ v in right trivialisation
-    yr = pk.Cayley().map(pk.Semidirect(pk.SO3, "right"), (u, v))
+    yr = pk.Semidirect(pk.SO3, "right").map(pk.Cayley(), (u, v))
     np.testing.assert_allclose(jnp.linalg.solve(jnp.eye(3) - pk.hat(u) / 2, v), yr.fiber, atol=1e-14)
 
 
@@ -139,8 +139,8 @@ def test_paper_printed_semidirect_dcayley_inv_holds_on_so3_only(trivialization):
         U = bundle_algebra(bundle, 0.6 * rng.normal(size=6), 0.6 * rng.normal(size=6))
         V = bundle_algebra(bundle, rng.normal(size=6), rng.normal(size=6))
         X = _differential(bundle, coords, U, V)
-        residuals[base] = max_leaf_difference(paper_semidirect_dcayley_inv(bundle, U, X), V)
-        assert max_leaf_difference(coords.exact_inverse_differential(bundle, U, X), V) < 1e-12
+        residuals[base] = max_leaf_difference(paper_semidirect_dcayley_inv(base, U, X), V)
+        assert max_leaf_difference(bundle.inverse_differential(coords, U, X), V) < 1e-12
     assert residuals[pk.SO3] < 1e-12
     assert residuals[pk.SOn] > 1e-4
 
@@ -154,8 +154,8 @@ def test_inverse_map_inverts_the_map(name, coords_name, scale):
     bundle, coords = BUNDLES[name], COORDINATES[coords_name]
     rng = np.random.default_rng(11)
     U = bundle_algebra(bundle, scale * rng.normal(size=6), scale * rng.normal(size=6))
-    assert max_leaf_difference(coords.inverse_map(bundle, coords.map(bundle, U)), U) < 1e-12
-    y = coords.map(bundle, bundle_algebra(bundle, rng.normal(size=6), rng.normal(size=6)))
+    assert max_leaf_difference(bundle.inverse_map(coords, bundle.map(coords, U)), U) < 1e-12
+    y = bundle.map(coords, bundle_algebra(bundle, rng.normal(size=6), rng.normal(size=6)))
     for form in ("space", "body"):
         method = pk.PRKMK(bundle, coords, form=form)
         moved = method.apply_increment(U, y)

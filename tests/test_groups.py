@@ -141,7 +141,7 @@ def tangent_to_algebra(bundle, tangent):
 
 
 def element(bundle, a, b):
-    return EXP.map(bundle, bundle_algebra(bundle, a, b))
+    return bundle.map(EXP, bundle_algebra(bundle, a, b))
 
 
 @pytest.mark.parametrize("name", BUNDLES)
@@ -163,7 +163,7 @@ def test_bundle_group_axioms(name, a, b, c, d, e, f):
 def test_bundle_log_inverts_exp(name, a, b):
     bundle = BUNDLES[name]
     U = bundle_algebra(bundle, a, b)
-    _close(EXP.inverse_map(bundle, EXP.map(bundle, U)), U, tol=1e-10)
+    _close(bundle.inverse_map(EXP, bundle.map(EXP, U)), U, tol=1e-10)
 
 
 @pytest.mark.parametrize("name", BUNDLES)
@@ -178,10 +178,10 @@ def test_bundle_bracket_is_the_group_commutator(name):
         return jax.tree.map(lambda x: t * x, U)
 
     def adjoint_of_exp(t):
-        g = EXP.map(bundle, scaled(t, X))
+        g = bundle.map(EXP, scaled(t, X))
 
         def inner(s):
-            return bundle.multiply(bundle.multiply(g, EXP.map(bundle, scaled(s, Y))), bundle.inverse(g))
+            return bundle.multiply(bundle.multiply(g, bundle.map(EXP, scaled(s, Y))), bundle.inverse(g))
 
         return tangent_to_algebra(bundle, jax.jvp(inner, (0.0,), (1.0,))[1])
 
@@ -304,20 +304,20 @@ def test_inverse_shifted_ad_and_exp_adjoint_broadcast_batches():
 @pytest.mark.parametrize("form", ["space", "body"])
 @pytest.mark.parametrize("coordinates", ["exp", "cayley"])
 def test_apply_increment_equals_the_group_product(name, form, coordinates):
-    """coordinates.apply(bundle, U, y, form) is y·f(U) (body) or f(U)·y (space)."""
+    """bundle.apply(coordinates, U, y, form) is y·f(U) (body) or f(U)·y (space)."""
     bundle = BUNDLES[name]
     rng = np.random.default_rng(4)
     y = element(bundle, rng.normal(size=6), rng.normal(size=6))
     U = bundle_algebra(bundle, 0.7 * rng.normal(size=6), rng.normal(size=6))
     coords = pk.Exp() if coordinates == "exp" else pk.Cayley()
-    increment = coords.map(bundle, U)
+    increment = bundle.map(coords, U)
     expected = bundle.multiply(y, increment) if form == "body" else bundle.multiply(increment, y)
-    _close(coords.apply(bundle, U, y, form), expected, tol=1e-11)
+    _close(bundle.apply(coords, U, y, form), expected, tol=1e-11)
     # A fiber component None is a zero known at trace time (what a PRKMK
     # stage passes when no L enters it): the product with f(u, 0).
-    increment = coords.map(bundle, (U[0], jnp.zeros_like(U[1])))
+    increment = bundle.map(coords, (U[0], jnp.zeros_like(U[1])))
     expected = bundle.multiply(y, increment) if form == "body" else bundle.multiply(increment, y)
-    _close(coords.apply(bundle, (U[0], None), y, form), expected, tol=1e-11)
+    _close(bundle.apply(coords, (U[0], None), y, form), expected, tol=1e-11)
 
 
 @pytest.mark.parametrize("group", [pk.SO3, pk.SOn])

@@ -104,6 +104,25 @@ def test_no_retrace_for_new_data():
         run(initial_state(COTANGENT, seed), jnp.asarray(INERTIA) * (1 + seed), jnp.asarray(0.01 * (seed + 1)))
 
 
+def test_a_plain_call_compiles_once_per_shape():
+    """`integrate` called as it is, twice with new values of the same shapes
+    (state, parameters, t0, dt), traces the run once: the field is traced
+    during the first call only. A new number of steps compiles again."""
+    method, traces = _method(), []
+
+    def field(t, y, inertia):
+        traces.append(None)
+        return FIELD(t, y, inertia)
+
+    pk.integrate(method, field, initial_state(COTANGENT, 0), 0.0, 0.01, 20, jnp.asarray(INERTIA))
+    first = len(traces)
+    assert first > 0
+    pk.integrate(method, field, initial_state(COTANGENT, 1), 0.5, 0.02, 20, 2 * jnp.asarray(INERTIA))
+    assert len(traces) == first
+    pk.integrate(method, field, initial_state(COTANGENT, 1), 0.0, 0.01, 40, jnp.asarray(INERTIA))
+    assert len(traces) > first
+
+
 def _loss_fn(method, bundle, field):
     def loss(inertia, y0):
         traj = pk.integrate(method, field, y0, 0.0, 0.05, 40, inertia, save_every=10)

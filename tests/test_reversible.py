@@ -13,8 +13,7 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from prkmk_jax.made_of_steps import AbstractMadeOfSteps
-from prkmk_jax.reversible import for_the_backward_pass
+from prkmk_jax.methods.adjoint import AbstractMadeOfSteps
 from prkmk_jax.scenes import ForcedParameters, ForcedRigidBody, FreeRigidBody, HarmonicTorque, HeavyTop, TopParameters, random_rotation
 
 FREE, TOP = FreeRigidBody(), HeavyTop()
@@ -49,7 +48,7 @@ def _loss(method, field, num_steps, save_every, gradient):
     return loss
 
 
-def _gradients(method, field, args, num_steps=60, save_every=20, gradient=None, y0=Y0):
+def _gradients(method, field, args, num_steps=60, save_every=20, gradient=pk.StoredSteps(), y0=Y0):
     return jax.jit(jax.grad(_loss(method, field, num_steps, save_every, gradient), argnums=(0, 1)))(y0, args)
 
 
@@ -76,7 +75,7 @@ def test_the_backward_pass_sums_every_prkmk_step_plainly_from_the_guess(name):
     same, every PRKMK method in them (however nested) with
     compensated_sum=False and start_either_side=False."""
     _, method, _ = METHODS[name]
-    plain = for_the_backward_pass(method)
+    plain = method.for_reconstruction()
 
     def prkmk_parts(m):
         return [m] if isinstance(m, pk.PRKMK) else prkmk_parts(m.method) if isinstance(m, AbstractMadeOfSteps) else []
@@ -124,7 +123,7 @@ def test_a_reconstruction_off_the_kept_state_raises():
 def test_reversible_gradient_agrees_with_finite_differences():
     """d loss / d I₁ by central differences of the forward run (no autodiff)."""
     method = FREE.method(pk.stormer_verlet)
-    loss = jax.jit(_loss(method, FREE, 200, 200, None))
+    loss = jax.jit(_loss(method, FREE, 200, 200, pk.StoredSteps()))
     gradient = _gradients(method, FREE, INERTIA, 200, 200, pk.ReversibleGradient())[1]
     eps = 1e-6
     bump = jnp.array([eps, 0.0, 0.0])
@@ -144,7 +143,7 @@ def test_memory_does_not_grow_with_the_number_of_steps():
         return grad.lower(Y0, INERTIA).compile().memory_analysis().temp_size_in_bytes
 
     reversible = [temp_bytes(n, pk.ReversibleGradient(checkpoint_every=None)) for n in (200, 20_000)]
-    stored = [temp_bytes(n, None) for n in (200, 20_000)]
+    stored = [temp_bytes(n, pk.StoredSteps()) for n in (200, 20_000)]
     assert reversible[1] <= 1.5 * reversible[0], reversible
     assert stored[1] >= 10 * stored[0], stored
 
@@ -159,7 +158,7 @@ def test_a_closure_over_a_differentiated_parameter_is_differentiated():
         final = pk.integrate(method, field, Y0, 0.0, H, 60, None, save_every=60, gradient=gradient).ys.fiber[-1]
         return jnp.sum(final**2 * jnp.arange(1.0, 4.0))  # not the Casimir |Π|², whose gradient is 0
 
-    np.testing.assert_allclose(jax.grad(loss)(INERTIA, pk.ReversibleGradient()), jax.grad(loss)(INERTIA, None), rtol=1e-11)
+    np.testing.assert_allclose(jax.grad(loss)(INERTIA, pk.ReversibleGradient()), jax.grad(loss)(INERTIA, pk.StoredSteps()), rtol=1e-11)
 
 
 def test_a_field_module_is_differentiated():
@@ -175,7 +174,7 @@ def test_a_field_module_is_differentiated():
         final = pk.integrate(method, body, Y0, 0.0, H, 60, None, save_every=60, gradient=gradient).ys.fiber[-1]
         return jnp.sum(final**2 * jnp.arange(1.0, 4.0))
 
-    stored = eqx.filter_grad(loss)(Body(INERTIA), None).inertia
+    stored = eqx.filter_grad(loss)(Body(INERTIA), pk.StoredSteps()).inertia
     np.testing.assert_allclose(eqx.filter_grad(loss)(Body(INERTIA), pk.ReversibleGradient()).inertia, stored, rtol=1e-11)
 
 
@@ -190,7 +189,7 @@ def test_vmapped_over_initial_states():
 
         return jnp.sum(jax.vmap(one)(rotations, momenta))
 
-    stored = jax.grad(batch_loss)(INERTIA, None)
+    stored = jax.grad(batch_loss)(INERTIA, pk.StoredSteps())
     np.testing.assert_allclose(jax.grad(batch_loss)(INERTIA, pk.ReversibleGradient()), stored, rtol=1e-10)
 
 
@@ -215,11 +214,11 @@ def test_refusals():
         pk.ReversibleGradient(max_reconstruction_error=-1.0)
     with pytest.raises(TypeError, match="ReversibleGradient"):
         _gradients(FREE.method(pk.stormer_verlet), FREE, INERTIA, gradient="reversible")
-    # Reverse mode only: forward mode raises (and works with gradient=None).
+    # Reverse mode only: forward mode raises (and works with StoredSteps()).
     loss = _loss(FREE.splitting(), FREE, 10, 10, pk.ReversibleGradient())
     with pytest.raises(TypeError, match="forward-mode"):
         jax.jvp(lambda a: loss(Y0, a), (INERTIA,), (jnp.ones(3),))
-    assert np.isfinite(jax.jvp(lambda a: _loss(FREE.splitting(), FREE, 10, 10, None)(Y0, a), (INERTIA,), (jnp.ones(3),))[1])
+    assert np.isfinite(jax.jvp(lambda a: _loss(FREE.splitting(), FREE, 10, 10, pk.StoredSteps())(Y0, a), (INERTIA,), (jnp.ones(3),))[1])
 
 
 # --- diffeqsolve: ReversibleAdjoint ------------------------------------------------
@@ -317,7 +316,7 @@ def test_reversible_adjoint_steps_at_diffrax_times(t1, dt0):
     """The times the backward pass undoes the steps at are those of diffrax's
     steps (`SaveAt(steps=True)`), to the last bit (the same formula, whose
     product XLA may round either way)."""
-    from prkmk_jax.reversible import _constant_step_ends
+    from prkmk_jax.reversible_adjoint import _constant_step_ends
 
     solver, steps = pk.PRKMKSolver(FREE.splitting()), diffrax.SaveAt(steps=True)
     sol = diffrax.diffeqsolve(pk.PRKMKTerm(FREE), solver, 0.0, t1, dt0, Y0, INERTIA, saveat=steps, max_steps=1000)

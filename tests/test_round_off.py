@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
+from prkmk_jax.methods.stage_solve import _fixed_point_iteration
 from prkmk_jax.scenes import FreeRigidBody
 from prkmk_jax.scenes.rigid_body import PAPER_INERTIA, random_rotation
-from prkmk_jax.step import _fixed_point_iteration
 
 DOTTIE = 0.739085133215160641655312087673873404013411758900757464965680635773
 """The fixed point of cos (the Dottie number), to 66 digits."""
@@ -103,28 +103,3 @@ def test_energy_error_grows_like_a_random_walk(coordinates):
 
     assert exponent("round-off") < 0.75
     assert exponent("tolerance") > 0.9
-
-
-def test_round_off_starts_each_stage_iteration_on_a_side_its_state_picks():
-    """Solved to round-off, a step's stage iteration starts at G ± D (G the
-    extrapolated guess, D the previous stage's offset from the previous
-    field), the side flipping with the parity of the fiber's last bits;
-    stopped at the tolerance, or with start_either_side=False, at G.
-    Checked on one step's carried values, by exact arithmetic on small
-    integers."""
-    scene = pk.scenes.FreeRigidBody()
-    inertia = jnp.asarray([2.0, 3.0, 4.0])
-    previous_field = (jnp.asarray([1.0, 2.0, 3.0]), jnp.zeros(3))
-    previous_stages = tuple((previous_field[0] + k, jnp.zeros(3)) for k in (0.0, 0.5))
-    fiber = jnp.asarray([4.0, 6.0, 8.0])  # Ω = (2, 2, 2); every lowest bit 0
-    for iterate_until, either_side, sides in (("round-off", True, (1, -1)), ("tolerance", True, (0, 0)), ("round-off", False, (0, 0))):
-        method = pk.PRKMK(
-            scene.bundle, pk.Exp(), pk.stormer_verlet, form="body", iterate_until=iterate_until, start_either_side=either_side
-        )
-        for parity_flip, side in zip((False, True), sides):
-            state_fiber = fiber.at[0].set(jnp.nextafter(fiber[0], 10.0)) if parity_flip else fiber
-            y = pk.BundleElement(pk.SO3(jnp.eye(3)), state_fiber)
-            field_now, guesses = method.extrapolated_guesses(scene, 0.0, y, inertia, (previous_field, previous_stages))
-            for (guess, _), (stage, _) in zip(guesses, previous_stages):
-                extrapolated = stage + field_now[0] - previous_field[0]
-                np.testing.assert_array_equal(guess, extrapolated + side * (stage - previous_field[0]))

@@ -111,7 +111,7 @@ def test_an_axis_rotation_is_the_bundle_group_action(coordinates):
         moved = FREE.unpack(part.flow(coordinates, jnp.asarray(0.0), FREE.pack(y0, INERTIA), h, INERTIA), y0, INERTIA)
         axis = by_inertia[part.axis]
         u = h * y0.fiber[axis] / INERTIA[axis] * jnp.eye(3)[axis]
-        expected = coordinates.apply(FREE.bundle, (u, None), y0, "body")
+        expected = FREE.bundle.apply(coordinates, (u, None), y0, "body")
         assert max_leaf_difference(moved, expected) < 1e-15
 
 

@@ -13,8 +13,8 @@ import pytest
 
 import prkmk_jax as pk
 from helpers import INERTIA, empirical_order, initial_state, max_leaf_difference, random_rotation, rigid_body_field
-from prkmk_jax.method import RESULTS, varying_with
-from prkmk_jax.stage_plan import Implicit
+from prkmk_jax.methods.base import RESULTS, batched_like
+from prkmk_jax.methods.stage_plan import Implicit
 
 H = 0.1
 
@@ -233,16 +233,17 @@ def test_stage_guesses_change_the_iterations_not_the_step(tab):
     ],
     ids=["SV-exact", "L4", "SV-cartesian-cayley", "adjoint-L4", "SV-newton"],
 )
-def test_step_at_solved_stages_is_the_step_and_its_derivative(make):
-    """From the slopes the step solved for, `step_at_stages` evaluates each
-    implicit block once and takes the same step; its derivative in the
-    state and the parameters (through the implicit function theorem at
-    those slopes) is the iterated step's."""
+def test_step_again_at_solved_stages_is_the_step_and_its_derivative(make):
+    """From the slopes a step solved for (which the step that undoes it
+    solves again), `step_again` evaluates each implicit block once and
+    takes the same step; its derivative in the state and the parameters
+    (through the implicit function theorem at those slopes) is the
+    iterated step's."""
     method = make()
     bundle = method.bundle
     field, y0, args = rigid_body_field(bundle, "body"), initial_state(bundle), jnp.asarray(INERTIA)
     solved = method.step(field, 0.0, y0, H, args)
-    again = method.step_at_stages(field, 0.0, y0, H, args, solved.carried[1])
+    again = method.step_again(field, 0.0, y0, H, args, solved.carried)
     assert again.result == pk.RESULTS.successful
     assert max_leaf_difference(again.y, solved.y) <= 1e-15
     if isinstance(method, pk.Adjoint):
@@ -254,7 +255,7 @@ def test_step_at_solved_stages_is_the_step_and_its_derivative(make):
         return lambda y, a: step_of(y, a).y
 
     iterated = end(lambda y, a: method.step(field, 0.0, y, H, a))
-    at_stages = end(lambda y, a: method.step_at_stages(field, 0.0, y, H, a, jax.lax.stop_gradient(solved.carried[1])))
+    at_stages = end(lambda y, a: method.step_again(field, 0.0, y, H, a, solved.carried))
     cotangent = jax.tree.map(lambda x: jnp.cos(jnp.arange(x.size, dtype=x.dtype).reshape(x.shape)), solved.y)
     expected = eqx.filter_jit(lambda y, a: eqx.filter_vjp(iterated, y, a)[1](cotangent))(y0, args)
     got = eqx.filter_jit(lambda y, a: eqx.filter_vjp(at_stages, y, a)[1](cotangent))(y0, args)
@@ -262,7 +263,7 @@ def test_step_at_solved_stages_is_the_step_and_its_derivative(make):
 
 
 @pytest.mark.parametrize("adjoint", [False, True], ids=["PRKMK", "adjoint"])
-def test_step_at_stages_flags_slopes_that_do_not_solve(adjoint):
+def test_step_again_flags_slopes_that_do_not_solve(adjoint):
     """Slopes off the solution by far more than the stage tolerance are
     evaluated once, as asked, and the step's result says they were no
     solution."""
@@ -270,17 +271,10 @@ def test_step_at_stages_flags_slopes_that_do_not_solve(adjoint):
     method = pk.PRKMK(bundle, pk.Exp(), pk.lobatto_iiia_iiib4, form="body")
     method = pk.Adjoint(method) if adjoint else method
     field, y0, args = rigid_body_field(bundle, "body"), initial_state(bundle), jnp.asarray(INERTIA)
-    stages = method.step(field, 0.0, y0, H, args).carried[1]
-    off = tuple((k_i + 1e-6, l_i) for k_i, l_i in stages)
-    assert method.step_at_stages(field, 0.0, y0, H, args, stages).result == pk.RESULTS.successful
-    assert method.step_at_stages(field, 0.0, y0, H, args, off).result == pk.RESULTS.nonlinear_max_steps_reached
-
-
-def test_step_at_stages_needs_a_prkmk_method():
-    splitting = pk.scenes.FreeRigidBody().splitting()
-    y0 = initial_state(pk.Cotangent(pk.SO3))
-    with pytest.raises(TypeError, match="adjoint of a PRKMK method"):
-        pk.Adjoint(splitting).step_at_stages(splitting.scene, 0.0, y0, H, jnp.asarray(INERTIA), ())
+    carried = method.step(field, 0.0, y0, H, args).carried
+    off = (carried[0], tuple((k_i + 1e-6, l_i) for k_i, l_i in carried[1]))
+    assert method.step_again(field, 0.0, y0, H, args, carried).result == pk.RESULTS.successful
+    assert method.step_again(field, 0.0, y0, H, args, off).result == pk.RESULTS.nonlinear_max_steps_reached
 
 
 def test_integrate_extrapolated_guesses_save_iterations():
@@ -320,18 +314,18 @@ def test_carried_of_the_wrong_structure_is_refused():
         method.step(field, 0.0, y0, H, args, ((zero, zero),))
 
 
-def test_varying_with_keeps_values_and_is_batched_under_vmap():
+def test_batched_like_keeps_values_and_is_batched_under_vmap():
     """A loop's starting carry made to vary with the state: the same values
     (whatever the state holds, NaN included), batched where the state is,
     and the select that does it folded away by XLA."""
     start = (jnp.zeros(3), RESULTS.successful, jnp.array(7, jnp.int32))
     for state in (jnp.ones((4, 2)), jnp.full((4, 2), jnp.nan), jnp.zeros((4, 0, 2))):
-        out = jax.vmap(lambda y: varying_with(start, y))(state)
+        out = jax.vmap(lambda y: batched_like(start, y))(state)
         assert out[0].shape == (4, 3) and out[2].shape == (4,)
         assert jnp.all(out[0] == 0) and jnp.all(out[2] == 7) and jnp.all(out[1]._value == RESULTS.successful._value)
     # Batched: vmap refuses to hand it back unmapped (the constant itself it would).
     jax.vmap(lambda y: jnp.zeros(3), out_axes=None)(jnp.ones((4, 2)))
     with pytest.raises(ValueError, match="out_axes"):
-        jax.vmap(lambda y: varying_with(jnp.zeros(3), y), out_axes=None)(jnp.ones((4, 2)))
-    assert varying_with((jnp.zeros(2), "static"), jnp.ones(2))[1] == "static"
-    assert " select(" not in jax.jit(lambda y: varying_with(jnp.zeros(3), y)).lower(jnp.ones(2)).compile().as_text()
+        jax.vmap(lambda y: batched_like(jnp.zeros(3), y), out_axes=None)(jnp.ones((4, 2)))
+    assert batched_like((jnp.zeros(2), "static"), jnp.ones(2))[1] == "static"
+    assert " select(" not in jax.jit(lambda y: batched_like(jnp.zeros(3), y)).lower(jnp.ones(2)).compile().as_text()

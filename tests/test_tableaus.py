@@ -50,7 +50,7 @@ def test_bad_tableaus():
 def test_plan_of_the_tableau_alone():
     """With every slope depending on the whole stage point, the plan is the
     tableau's own block structure."""
-    from prkmk_jax.stage_plan import COUPLED, Explicit, Implicit, plan_stages
+    from prkmk_jax.methods.stage_plan import COUPLED, Explicit, Implicit, plan_stages
 
     assert plan_stages(pk.symplectic_euler, COUPLED) == (Implicit(((0, 0), (0, 1))),)
     assert plan_stages(pk.stormer_verlet, COUPLED) == (Implicit(((0, 0), (0, 1))), Implicit(((1, 0), (1, 1))))

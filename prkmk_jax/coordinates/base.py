@@ -1,8 +1,8 @@
-"""Coordinate maps f: 𝔤 → TG of the bundle group (paper §4.2, §4.4).
+"""Coordinate maps (paper §4.2, §4.4): charts φ: 𝔤 → G of the base group.
 
 A coordinate map is given on the base group G, and each bundle lifts it
-(`AbstractBundle.lifted_map` and its siblings): componentwise on G × 𝔤 and
-G × G, and on G ⋉ 𝔤 as
+(`AbstractBundle.map` and its siblings): componentwise on G × 𝔤 and G × G,
+and on G ⋉ 𝔤 as
 
     f(u, v) = (φ(u), ψ_{σu} v),   σ = −1 (left trivialisation) or 1 (right),
 
@@ -10,39 +10,34 @@ with φ the map on G and ψ a linear map of the fiber that the map chooses
 (`fiber_map`). A map therefore implements only what it is on G (the
 `group_*` methods, `fiber_map` and the inverse differential on G ⋉ 𝔤), and
 every bundle, present or future, uses it: adding a map is one new module.
+A map knows groups, never bundles.
 
-Differentials are right-trivialised, df_U(V) = d/dt f(U + tV)·f(U)⁻¹, and
-`inverse_differential(bundle, U, X, method_order)` returns df⁻¹_U(X), the
-right-hand side of the algebra equation U' = df⁻¹_U(ξ, η) of Algorithm 4.2.
+Differentials are right-trivialised, df_U(V) = d/dt f(U + tV)·f(U)⁻¹;
+`AbstractBundle.inverse_differential` returns df⁻¹_U(X), the right-hand
+side of the algebra equation U' = df⁻¹_U(ξ, η) of Algorithm 4.2.
 """
 
 import abc
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 import equinox as eqx
 import jax
 from jaxtyping import Array
 
-from ..bundles import AbstractBundle, AlgebraPair, BundleElement, Increment
 from ..groups.base import AbstractLieGroup
 
-if TYPE_CHECKING:
-    from ..bundles import AbstractSemidirect
-
 Truncation = int | None | Literal["auto"]
+AlgebraPair = tuple[Array, Array]
+"""(u, v): an element of the bundle's algebra, as pairs of base-algebra arrays."""
 MAX_SERIES_TRUNCATION = 30
 """The largest truncation accepted: the series is unrolled at trace time, and
 beyond a few powers the exact form (`truncation=None`) is cheaper."""
 
 
 class AbstractCoordinates(eqx.Module):
-    """A coordinate map on the bundle group and its inverse differential.
-
-    What a map implements is what it is on the base group G (the abstract
-    methods); `map`, `inverse_map`, `apply` and `exact_inverse_differential`
-    lift it to any bundle and are the same for every map.
-    """
+    """A coordinate map of the base group G and its inverse differential,
+    which every bundle lifts to itself (`AbstractBundle`)."""
 
     truncation: eqx.AbstractVar[Truncation]
     maps_lines_to_subgroups: eqx.AbstractClassVar[bool]
@@ -96,8 +91,9 @@ class AbstractCoordinates(eqx.Module):
         """ψ_{σu}⁻¹ w."""
 
     @abc.abstractmethod
-    def semidirect_inverse_differential(self, bundle: "AbstractSemidirect", U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
-        """Exact df⁻¹_U(X) on G ⋉ 𝔤 (`dual_number_inverse_differential` where
+    def semidirect_inverse_differential(self, group: type[AbstractLieGroup], sign: float, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
+        """Exact df⁻¹_U(X) on G ⋉ 𝔤 with σ = `sign` (−1.0 left, 1.0 right
+        trivialisation; `dual_number_inverse_differential` where
         ψ_{σu} = dφ_{σu}, the tangent lift of φ)."""
 
     @abc.abstractmethod
@@ -109,42 +105,12 @@ class AbstractCoordinates(eqx.Module):
         returned through `groups.computed_once`, so that the rows reading
         them do not each evaluate them again."""
 
-    @abc.abstractmethod
-    def inverse_differential(self, bundle: AbstractBundle, U: AlgebraPair, X: AlgebraPair, method_order: int) -> AlgebraPair:
-        """df⁻¹_U(X), truncated as `resolve_truncation(method_order)` says
-        (`exact_inverse_differential` where that is None)."""
-
-    # --- the same for every map: lifted to the bundle by the bundle ---------------------
-    def check_bundle(self, bundle: AbstractBundle) -> None:
-        """Raise `TypeError` if these coordinates do not exist on `bundle`."""
-        self.check_group(bundle.base)
-
-    def map(self, bundle: AbstractBundle, U: AlgebraPair) -> BundleElement:
-        """f(U)."""
-        self.check_bundle(bundle)
-        return bundle.lifted_map(self, U)
-
-    def inverse_map(self, bundle: AbstractBundle, g: BundleElement) -> AlgebraPair:
-        """f⁻¹(g): the U near 0 with f(U) = g."""
-        self.check_bundle(bundle)
-        return bundle.lifted_inverse_map(self, g)
-
-    def apply(self, bundle: AbstractBundle, U: Increment, y: BundleElement, form: Literal["space", "body"]) -> BundleElement:
-        """y·f(U) (`form="body"`) or f(U)·y (`"space"`); U's fiber component
-        may be None, a zero known at trace time (`AbstractBundle.lifted_multiply`)."""
-        self.check_bundle(bundle)
-        return bundle.lifted_multiply(self, U, y, form)
-
-    def apply_change(self, bundle: AbstractBundle, U: Increment, y: BundleElement, form: Literal["space", "body"]) -> BundleElement:
-        """`apply` minus y, y kept out: the change of each array of the state,
-        rounded relative to the change (`AbstractBundle.lifted_change`)."""
-        self.check_bundle(bundle)
-        return bundle.lifted_change(self, U, y, form)
-
-    def exact_inverse_differential(self, bundle: AbstractBundle, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
-        """df⁻¹_U(X) without truncation."""
-        self.check_bundle(bundle)
-        return bundle.lifted_inverse_differential(self, U, X)
+    def truncated_inverse_differential(self, bracket, U: AlgebraPair, X: AlgebraPair, truncation: int) -> AlgebraPair:
+        """df⁻¹_U(X) truncated at `truncation` (an int that
+        `resolve_truncation` gave), as a series in the bundle's `bracket`.
+        A map whose `resolve_truncation` only gives None (exact) needs none."""
+        del bracket, U, X
+        raise ValueError(f"{type(self).__name__} has no truncated inverse differential (asked for truncation {truncation}).")
 
 
 def dual_number_inverse_differential(

@@ -16,10 +16,9 @@ from typing import ClassVar
 
 import equinox as eqx
 
-from ..bundles import AbstractSemidirect, AlgebraPair
 from ..groups.base import AbstractLieGroup, AbstractQuadraticGroup
 from ..groups.trig import computed_once
-from .base import AbstractCoordinates, Truncation, check_truncation
+from .base import AbstractCoordinates, AlgebraPair, Truncation, check_truncation
 
 
 def _quadratic_group(group: type[AbstractLieGroup]) -> type[AbstractQuadraticGroup]:
@@ -90,16 +89,16 @@ class Cayley(AbstractCoordinates):
     def fiber_map_inverse(self, group, u, w, sign):
         return w - 0.5 * sign * group.bracket(u, w)
 
-    def semidirect_inverse_differential(self, bundle, U, X):
+    def semidirect_inverse_differential(self, group, sign, U, X):
         # Differentiate cay(U + tV)·cay(U)⁻¹ with w = fiber of cay(U) and
         # x_V = dcay⁻¹_u(x); solving the fiber part for y_V gives
         #   left:  y_V = (I + ½ad_u) Ad_{cay(u)⁻¹} y + ½[x_V, w]
         #   right: y_V = (I − ½ad_u)(y + [x, w]) − ½[x_V, w].
         (u, v), (x, y) = U, X
-        group = _quadratic_group(bundle.base)
+        group = _quadratic_group(group)
         br = group.bracket
-        left = bundle.trivialization == "left"
-        w = self.fiber_map(group, u, v, -1.0 if left else 1.0)
+        left = sign < 0
+        w = self.fiber_map(group, u, v, sign)
         x_v = group.dcayley_inv(u, x)
         if left:
             z = group.cayley_adjoint(-u, y)  # Ad_{cay(−u)} = Ad_{cay(u)⁻¹}, without forming the matrix
@@ -115,14 +114,13 @@ class Cayley(AbstractCoordinates):
         scale = 1.0 / (1.0 + quarter)
         return computed_once(angle * scale, (1.0 - quarter) * scale)
 
-    def inverse_differential(self, bundle, U, X, method_order):
-        self.check_bundle(bundle)
-        if self.resolve_truncation(method_order) == 0:
-            return X
-        return self.exact_inverse_differential(bundle, U, X)
+    def truncated_inverse_differential(self, bracket, U, X, truncation):
+        # The only truncation short of exact: dcay⁻¹ ≈ I.
+        del bracket, U, truncation
+        return X
 
 
-def paper_semidirect_dcayley_inv(bundle: AbstractSemidirect, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
+def paper_semidirect_dcayley_inv(group: type[AbstractLieGroup], U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
     """The §4.4 formula as printed: (dcay⁻¹_u x, y − ½([u,y] + [v,x]) − ¼[u,[x,v]]).
 
     Kept for comparison only: it is the inverse differential of the §4.4
@@ -130,6 +128,6 @@ def paper_semidirect_dcayley_inv(bundle: AbstractSemidirect, U: AlgebraPair, X: 
     where the derivation through the product (4.16) does not hold.
     """
     (u, v), (x, y) = U, X
-    group = _quadratic_group(bundle.base)
+    group = _quadratic_group(group)
     br = group.bracket
     return group.dcayley_inv(u, x), y - 0.5 * (br(u, y) + br(v, x)) - 0.25 * br(u, br(x, v))

@@ -61,14 +61,12 @@ class Exp(AbstractCoordinates):
     def fiber_map_inverse(self, group, u, w, sign):
         return group.dexp_inv(sign * u, w)
 
-    def semidirect_inverse_differential(self, bundle, U, X):
-        return dual_number_inverse_differential(bundle.base.dexp_inv, U, X)
+    def semidirect_inverse_differential(self, group, sign, U, X):
+        del sign  # the tangent lift: the same formula in both trivialisations
+        return dual_number_inverse_differential(group.dexp_inv, U, X)
 
     def planar_rotation(self, angle):
         return sincos(angle)
 
-    def inverse_differential(self, bundle, U, X, method_order):
-        q = self.resolve_truncation(method_order)
-        if q is None:
-            return self.exact_inverse_differential(bundle, U, X)
-        return dexp_inv_series(bundle.bracket, U, X, q)
+    def truncated_inverse_differential(self, bracket, U, X, truncation):
+        return dexp_inv_series(bracket, U, X, truncation)

@@ -19,10 +19,10 @@ from jaxtyping import Array, Float, PyTree
 from ..bundles import AbstractBundle, AlgebraPair, BundleElement, Cotangent
 from ..compositions import CompositionCoefficients
 from ..coordinates import AbstractCoordinates, Exp
+from ..fields import AbstractFieldOnBundle, Time
 from ..groups import SO3, AbstractRotationGroup
-from ..method import AbstractFieldOnBundle, Time
-from ..splitting import Splitting
-from ..step import PRKMK
+from ..methods.prkmk import PRKMK
+from ..methods.splitting import Splitting
 from ..tableaus import PartitionedTableau
 
 

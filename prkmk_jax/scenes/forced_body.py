@@ -18,8 +18,8 @@ from jaxtyping import Array, Float, PyTree
 
 from .. import diagnostics, exact_flows
 from ..bundles import AbstractBundle, BundleElement
+from ..fields import Time
 from ..groups import hat
-from ..method import Time
 from .base import AbstractBodyOnTStarSO3, checked_moments, checked_parameters, rotation_matrix
 
 

@@ -4,14 +4,14 @@
 a step that carries its implicit stages' starting guesses from one step to
 the next, the coordinate map its increments live in (for dense output), and
 the pieces shared by every method (the generator in the state's dtype, the
-vector-field check). `PRKMK` (Algorithm 4.2, `step.py`) is one; the methods
-made of other methods' steps (`made_of_steps.py`: adjoints, symmetrised methods,
-compositions) are the others.
+vector-field check), and how a step is undone for the reversible
+gradients. `PRKMK` (Algorithm 4.2, `prkmk.py`) is one, `Splitting`
+another; the methods made of other methods' steps (`Adjoint`,
+`Symmetrized`, `Composition`) are the others.
 """
 
 import abc
 import functools
-from collections.abc import Callable
 from typing import Any, Literal
 
 import diffrax
@@ -19,11 +19,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Int, PyTree, Real
+from jaxtyping import Array, PyTree
 
-from .bundles import AbstractBundle, AlgebraPair, BundleElement, Increment
-from .coordinates import AbstractCoordinates
-from .exact_sums import two_sum
+from ..bundles import AbstractBundle, AlgebraPair, BundleElement, Increment
+from ..coordinates import AbstractCoordinates
+from ..exact_sums import two_sum
+from ..fields import Iterations, Time, VectorField
 
 RESULTS = diffrax.RESULTS
 LOW_PRECISION_EPS = 1e-10
@@ -32,80 +33,9 @@ float16) are renormalised after each step where they have drifted off the
 group by more than a few ulps (`AbstractMethod.advance`). In
 float64 the drift stays below 1e-7 over 10⁹ steps and the state is left
 exactly as the coordinate map gives it."""
-Time = float | Real[Array, ""]
-"""A time or a step size: a Python number or a real scalar array."""
-Iterations = Int[Array, ""]
-"""A count of implicit iterations (an integer scalar)."""
-VectorField = Callable[[Time, BundleElement, PyTree], AlgebraPair]
-"""`f(t, y, args) -> (ξ, η)`: the generator of y' = (ξ, η)·y (space form) or
-y' = y·(ξ, η) (body form)."""
 
 
-class AbstractFieldOnBundle(eqx.Module):
-    """A vector field that says which bundle it lives on and in which form
-    (the scenes): a PRKMK method refuses it unless they are the method's own,
-    since the same generator read on another bundle or from the other side is
-    another system."""
-
-    bundle: eqx.AbstractVar[AbstractBundle]
-    """The bundle group the state lives on."""
-    form: eqx.AbstractVar[Literal["space", "body"]]
-    """Whether the generator acts from the left (space) or right (body)."""
-
-    @abc.abstractmethod
-    def checked_args(self, args: PyTree, /) -> PyTree:
-        """`args` after this field's checks of its parameters: a type or shape
-        that does not fit raises `TypeError`/`ValueError` at trace time, a
-        value out of range (a moment of inertia that is not > 0) raises at
-        run time through `eqx.error_if`, whose output this returns. The
-        drivers (`integrate`, `resume`, `PRKMKSolver`) call it once a run,
-        through `checked_field_args`."""
-
-
-def checked_field_args(vector_field: VectorField, args: PyTree) -> PyTree:
-    """`args` checked as both drivers (`integrate`, `PRKMKSolver`) check them
-    before a run: every floating leaf finite (a run-time check), then the
-    field's own checks where the field is a scene (an `AbstractFieldOnBundle`)."""
-
-    def finite(leaf):
-        if eqx.is_inexact_array(leaf):
-            return eqx.error_if(leaf, ~jnp.all(jnp.isfinite(leaf)), "args contain a non-finite value (NaN or inf).")
-        return leaf
-
-    args = jax.tree.map(finite, args)
-    if isinstance(vector_field, AbstractFieldOnBundle):
-        return vector_field.checked_args(args)
-    return args
-
-
-def counted_step(method: "AbstractMethod", vector_field: VectorField, t0, dt, args: PyTree):
-    """The body of a fixed-step `lax.scan` over step numbers n: step n runs
-    from t0 + n·dt. The carry is `counted_start`'s: the state, its
-    compensation (`compensated`), the first failure, the total of the
-    implicit iterations, the most in one step, and what the step carries to
-    the next."""
-
-    def one_step(carry, n):
-        y, compensation, result, total, worst, carried = carry
-        step = method.carried_step(vector_field, t0 + n * dt, y, dt, args, carried)
-        y_next, compensation = compensated(step.y, step.rounding, compensation)
-        result = first_failure(result, step.result)
-        return (y_next, compensation, result, total + step.iterations, jnp.maximum(worst, step.iterations), step.carried), None
-
-    return one_step
-
-
-def counted_start(y: BundleElement, carried: Any, compensation: BundleElement | None = None):
-    """The carry of `counted_step` before the first step (no compensation
-    yet, unless a continued run hands on its own), varying with `y`
-    (`varying_with`)."""
-    zero = jnp.array(0, jnp.int32)
-    if compensation is None:
-        compensation = no_compensation(y)
-    return y, *varying_with((compensation, RESULTS.successful, zero, zero, carried), y)
-
-
-def varying_with(tree: PyTree, reference: PyTree) -> PyTree:
+def batched_like(tree: PyTree, reference: PyTree) -> PyTree:
     """`tree` as it is, traced as a function of `reference`'s arrays.
 
     For a loop's carry that starts as a constant (a zero, a counter, a
@@ -276,12 +206,74 @@ class AbstractMethod(eqx.Module):
         """The generator X(tₙ, yₙ) at the start of the step that returned
         `carried` (it is part of what a step carries)."""
 
+    # --- how a step is undone (the reversible gradients) -----------------------------
+    def undoing_method(self) -> "AbstractMethod":
+        """The method whose step of −h undoes this method's step of h, to the
+        stage solve and round-off: yₙ = Ψ_{−h}(Φ_h(yₙ)). The default is the
+        method itself where it is symmetric by construction (`is_symmetric`:
+        Φ_{−h} = Φ_h⁻¹); a method that is not symmetric says which method
+        undoes it (a PRKMK method its `Adjoint`, the adjoint the PRKMK
+        method), and one that cannot say raises `TypeError`."""
+        if self.is_symmetric:
+            return self
+        raise TypeError(
+            f"reversible gradients need a method whose step can be undone exactly: a PRKMK method or its Adjoint (undone by "
+            f"each other), or a method symmetric by construction (Symmetrized, Splitting, a Composition of those or one with "
+            f"assume_symmetric_base=True); got a {type(self).__name__} that is none of these (a Composition of a base that "
+            "is not symmetric: compose Symmetrized(base) instead)."
+        )
+
+    @property
+    def has_adjoint_step(self) -> bool:
+        """Whether `adjoint_carried_step` takes a step of the adjoint
+        Φ*_h = (Φ_{−h})⁻¹ (`Adjoint`): by default where the method is
+        symmetric, Φ* = Φ."""
+        return self.is_symmetric
+
+    def adjoint_carried_step(
+        self, vector_field: VectorField, t: Time, y: BundleElement, dt: Time, args: PyTree, carried: Any, stages_solved: bool = False
+    ) -> Step:
+        """A step of the adjoint Φ*_h = (Φ_{−h})⁻¹, for `Adjoint`: by default
+        the method's own step, where it is symmetric. `stages_solved` (a
+        method with implicit stages): `carried` holds slopes that solve the
+        adjoint step's stages, to evaluate once (`step_again`)."""
+        del stages_solved
+        if not self.is_symmetric:
+            raise TypeError(f"a {type(self).__name__} that is not symmetric has no adjoint step of its own.")
+        return self.carried_step(vector_field, t, y, dt, args, carried)
+
+    def for_reconstruction(self) -> "AbstractMethod":
+        """This method as the reversible backward pass steps it, undoing and
+        differentiating steps between kept states: the same steps, without
+        what serves a long forward run only (a PRKMK method's compensated
+        sum and either-side start). Default: the method itself."""
+        return self
+
+    def step_again(self, vector_field: VectorField, t: Time, y: BundleElement, dt: Time, args: PyTree, undone_carried: Any) -> Step:
+        """This method's step from (t, y), taken again to differentiate it,
+        where `undoing_method()`'s step from its end carried `undone_carried`.
+        Default: the stage iteration started from the field at y (the step's
+        derivative does not depend on where its iteration starts); a PRKMK
+        method and its adjoint evaluate their stages once at the slopes the
+        undoing step solved for, which solve the same equations."""
+        start = jax.lax.stop_gradient(self.initial_carried(vector_field, t, y, args))
+        return self.carried_step(vector_field, t, y, dt, args, start)
+
+    def pulled_back_step(self, t: Time, y_next: BundleElement, dt: Time, args: PyTree, cotangent: BundleElement) -> Any:
+        """None (the default): the backward pass undoes a step with
+        `undoing_method()` and differentiates it by `step_again`. A method
+        that undoes and differentiates its own step returns (the step's
+        start, the cotangent there, the cotangent of `args`) instead
+        (`Splitting`, sub-flow by sub-flow)."""
+        del t, y_next, dt, args, cotangent
+        return None
+
     # --- shared by every method -----------------------------------------------------
     def apply_increment(self, U: Increment, y: BundleElement) -> BundleElement:
         """f(U)·y (space form) or y·f(U) (body form), f the coordinate map.
         U's fiber component may be None, a zero known at trace time
-        (`AbstractBundle.lifted_multiply`)."""
-        return self.coordinates.apply(self.bundle, U, y, self.form)
+        (`AbstractBundle.apply`)."""
+        return self.bundle.apply(self.coordinates, U, y, self.form)
 
     def advance(self, U: Increment, y: BundleElement, compensate: bool = True) -> tuple[BundleElement, BundleElement | None]:
         """The step's new state `apply_increment(U, y)` and what its sum lost
@@ -289,7 +281,7 @@ class AbstractMethod(eqx.Module):
 
         With `compensate`, the state is summed as y + (f(U)⊙y − y), the
         change computed with y kept out of it
-        (`AbstractCoordinates.apply_change`), so it is rounded relative to
+        (`AbstractBundle.apply_change`), so it is rounded relative to
         the change; the sum's rounding is returned exactly (`two_sum`), for
         the driver to carry on (`compensated`). Without, the product as it
         is, and no rounding (None).
@@ -305,7 +297,7 @@ class AbstractMethod(eqx.Module):
             return self.bundle.renormalized(self.apply_increment(U, y)), None
         if not compensate:
             return self.apply_increment(U, y), None
-        change = computed_once_tree(self.coordinates.apply_change(self.bundle, U, y, self.form))
+        change = computed_once_tree(self.bundle.apply_change(self.coordinates, U, y, self.form))
         y_next, rounding = tree_two_sum(y, change)
         return y_next, jax.lax.stop_gradient(rounding)
 
@@ -317,7 +309,7 @@ class AbstractMethod(eqx.Module):
             relative = bundle.multiply(bundle.inverse(y), y_next)
         else:
             relative = bundle.multiply(y_next, bundle.inverse(y))
-        return self.coordinates.inverse_map(bundle, relative)
+        return bundle.inverse_map(self.coordinates, relative)
 
     def slope(self, U: AlgebraPair, X: AlgebraPair, order: int | None = None) -> AlgebraPair:
         """U' for the generator X at the point reached by the increment U:
@@ -326,7 +318,7 @@ class AbstractMethod(eqx.Module):
         method's)."""
         if self.form == "body":
             U = tree_scale(-1.0, U)
-        return self.coordinates.inverse_differential(self.bundle, U, X, self.order if order is None else order)
+        return self.bundle.inverse_differential(self.coordinates, U, X, self.order if order is None else order)
 
     def slope_at(self, vector_field: VectorField, t: Time, U: Increment, y: BundleElement, args: PyTree) -> AlgebraPair:
         """The slope of a stage: df⁻¹_U(X(t, f(U)⊙y)), the field at the point

@@ -33,7 +33,7 @@ import jax
 import numpy as np
 from jax.extend.core import ClosedJaxpr, Jaxpr, Literal
 
-from .tableaus import PartitionedTableau
+from ..tableaus import PartitionedTableau
 
 _CLOSED = -1
 """Label of a value the traced function closed over (time, args, the state)."""

@@ -33,12 +33,13 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import PyTree
 
-from .bundles import BundleElement
-from .compositions import CompositionCoefficients
-from .coordinates import AbstractCoordinates, Exp
-from .exact_flows import AbstractSplitScene, renormalized_rotations
-from .groups.trig import computed_once
-from .method import LOW_PRECISION_EPS, RESULTS, AbstractMethod, Step, Time, VectorField, flag_nonfinite
+from ..bundles import BundleElement
+from ..compositions import CompositionCoefficients
+from ..coordinates import AbstractCoordinates, Exp
+from ..exact_flows import AbstractSplitScene, renormalized_rotations
+from ..fields import Time, VectorField
+from ..groups.trig import computed_once
+from .base import LOW_PRECISION_EPS, RESULTS, AbstractMethod, Step, flag_nonfinite
 
 FUSED_SUB_STEPS = 5
 """At most this many sub-steps of a step are left to XLA to fuse; then
@@ -113,7 +114,7 @@ class Splitting(AbstractMethod):
                 )
         if not isinstance(self.coordinates, AbstractCoordinates):
             raise TypeError(f"coordinates must be an AbstractCoordinates such as Exp() or Cayley(), got {self.coordinates!r}.")
-        self.coordinates.check_bundle(self.scene.bundle)
+        self.scene.bundle.check_coordinates(self.coordinates)
 
     @property
     def bundle(self):  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a property implements an AbstractVar
@@ -166,6 +167,15 @@ class Splitting(AbstractMethod):
         result = flag_nonfinite(RESULTS.successful, y_next)
         # Rotations of the packed rows, not a sum: nothing to compensate.
         return Step(y_next, self.increment_between(y, y_next), result, jnp.array(0, jnp.int32), None, field_now)
+
+    def pulled_back_step(self, t, y_next, dt, args, cotangent):
+        """In float64, `reverse_step`: undone and differentiated from the
+        step's end, each sub-flow once. In low precision None: the step's
+        renormalisation onto the group has no inverse, and the backward pass
+        undoes the step by its step of −dt and differentiates it."""
+        if jnp.finfo(jnp.result_type(*jax.tree.leaves(y_next))).eps > LOW_PRECISION_EPS:
+            return None
+        return self.reverse_step(t, y_next, dt, args, cotangent)
 
     def _sub_steps(self, num_parts: int) -> tuple[tuple[int, float, float], ...]:
         """This method's sub-steps (`sub_steps`): its composition's fractions,
