@@ -24,7 +24,7 @@ from jaxtyping import Array, PyTree
 from ..bundles import AbstractBundle, AlgebraPair, BundleElement, Increment
 from ..coordinates import AbstractCoordinates
 from ..exact_sums import two_sum
-from ..fields import Iterations, Time, VectorField
+from ..fields import AbstractFieldOnBundle, Iterations, Time, VectorField
 
 RESULTS = diffrax.RESULTS
 LOW_PRECISION_EPS = 1e-10
@@ -54,6 +54,18 @@ def batched_like(tree: PyTree, reference: PyTree) -> PyTree:
         return tree
     never = jnp.any(leaves[0] != leaves[0]) & False
     return jax.tree.map(lambda x: jnp.where(never, x, x) if eqx.is_array(x) else x, tree)
+
+
+def check_parts(bundle, coordinates, form) -> None:
+    """Trace-time checks of what a method on a bundle is built from: a
+    bundle group, a coordinate map that exists on its base, and a form."""
+    if not isinstance(bundle, AbstractBundle):
+        raise TypeError(f"bundle must be a bundle group such as Cartesian(SO3), got {bundle!r}.")
+    if not isinstance(coordinates, AbstractCoordinates):
+        raise TypeError(f"coordinates must be an AbstractCoordinates such as Exp() or Cayley(), got {coordinates!r}.")
+    if form not in ("space", "body"):
+        raise ValueError(f"form must be 'space' (y' = X·y) or 'body' (y' = y·X), got {form!r}.")
+    bundle.check_coordinates(coordinates)
 
 
 def no_compensation(y: BundleElement) -> BundleElement:
@@ -194,12 +206,27 @@ class AbstractMethod(eqx.Module):
     def carried_step(self, vector_field: VectorField, t: Time, y: BundleElement, dt: Time, args: PyTree, carried: Any) -> Step:
         """`step` with `carried` given: what each method implements."""
 
-    @abc.abstractmethod
     def check_fits(self, vector_field: VectorField) -> None:
         """Trace-time check that this method can integrate `vector_field`
-        (`ValueError` if not): a PRKMK method takes any field on its bundle,
-        a `Splitting` only the scene it was built for. The drivers call it
-        with the user's field."""
+        (`ValueError` if not); the drivers call it with the user's field.
+        By default any field on the bundle (its shapes are checked by
+        `check_vector_field`), but a field that names its bundle and form (a
+        scene, `AbstractFieldOnBundle`) must name this method's: the same
+        generator read on another bundle or from the other side is another
+        system. A `Splitting` takes only the scene it was built for."""
+        if not isinstance(vector_field, AbstractFieldOnBundle):
+            return
+        name = type(vector_field).__name__
+        if eqx.tree_equal(vector_field.bundle, self.bundle) is not True:
+            raise ValueError(
+                f"{name} lives on {vector_field.bundle!r}, but this method was built for {self.bundle!r}: the same generator on "
+                f"another bundle is another system. Build the method from the scene (scene.method(tableau)) or on its bundle."
+            )
+        if vector_field.form != self.form:
+            raise ValueError(
+                f"{name} is written in {vector_field.form} form, but this method steps in {self.form} form: "
+                f"build it with form={vector_field.form!r} (scene.method(tableau) does)."
+            )
 
     @abc.abstractmethod
     def start_field(self, carried: Any) -> AlgebraPair:

@@ -32,13 +32,21 @@ from jaxtyping import PyTree
 from ..bundles import AbstractBundle, BundleElement
 from ..coordinates import AbstractCoordinates, Exp
 from ..exact_sums import rounded_once_combination
-from ..fields import AbstractFieldOnBundle, Time, VectorField
+from ..fields import Time, VectorField
 from ..tableaus import PartitionedTableau, stormer_verlet
 from .adjoint import Adjoint
-from .base import RESULTS, AbstractMethod, Step, first_failure, flag_nonfinite
+from .base import RESULTS, AbstractMethod, Step, check_parts, flag_nonfinite
 from .stage_plan import COUPLED, Explicit, StageDependence, plan_stages, stage_dependence
 from .stage_solve import StageSolve
-from .stages import check_stage_pairs, explicit_slopes_in_loop, extrapolated_guesses, stages_in_loop, start_side, static_combination
+from .stages import (
+    check_stage_pairs,
+    explicit_slopes_in_loop,
+    extrapolated_guesses,
+    slopes_by_plan,
+    stages_in_loop,
+    start_side,
+    static_combination,
+)
 
 
 class PRKMK(AbstractMethod):
@@ -57,23 +65,17 @@ class PRKMK(AbstractMethod):
       stops at `rtol`/`atol` (default max(1e-12, 50·eps)); an optimistix
       `root_finder` (e.g. `optx.Newton(rtol, atol)`) converges where h times
       the field's Lipschitz constant is not small.
-    - `compensated_sum`: True (default) adds each step's change to the
-      state with what the sum loses to rounding carried into the next
-      step (`Step.rounding`, `compensated`); False takes the product
-      f(U)⊙y as it is.
-    - `start_either_side`: with the stages solved to round-off, start each
-      step's iteration on the side of the extrapolated guess that the
-      state's last bits pick (`stages.extrapolated_guesses`), so that the
-      leans of the round-off solve cancel (default); False starts at the guess.
-    - `coupling`: `"traced"` (default) reads which slopes each stage depends
-      on from the field's program (`stage_plan`); `"tableau"` assumes
-      every slope depends on the whole stage point.
-    - `explicit_stages`: an explicit tableau's stages `"unrolled"` or in a
-      `"loop"`; `"auto"` (default) takes the loop from `STAGE_LOOP_BATCH`
-      trajectories in the state on.
-
-    The docs' pages *Which stages are implicit* and *Tableaus, order and
-    compositions* say what each choice costs and keeps.
+    - `compensated_sum`: True (default) adds each step's change to the state
+      and carries what the sum loses to rounding into the next step
+      (`compensated`); False takes the product f(U)⊙y as it is.
+    - `start_either_side`: solving to round-off, start each step's iteration
+      on the side of its guess that the state's last bits pick, so that the
+      solve's leans cancel (default; `stages.extrapolated_guesses`).
+    - `coupling`: `"traced"` (default) reads what each slope depends on
+      from the field's program (`stage_plan`); `"tableau"` from A alone.
+    - `explicit_stages`: an explicit tableau's stages `"unrolled"`, in a
+      `"loop"`, or `"auto"` (default): the loop from `STAGE_LOOP_BATCH`
+      trajectories in the state on (docs: *Tableaus, order and compositions*).
     """
 
     bundle: AbstractBundle
@@ -91,14 +93,9 @@ class PRKMK(AbstractMethod):
     start_either_side: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
-        if not isinstance(self.bundle, AbstractBundle):
-            raise TypeError(f"bundle must be a bundle group such as Cartesian(SO3), got {self.bundle!r}.")
-        if not isinstance(self.coordinates, AbstractCoordinates):
-            raise TypeError(f"coordinates must be an AbstractCoordinates such as Exp() or Cayley(), got {self.coordinates!r}.")
+        check_parts(self.bundle, self.coordinates, self.form)
         if not isinstance(self.tableau, PartitionedTableau):
             raise TypeError(f"tableau must be a PartitionedTableau, got {type(self.tableau).__name__}.")
-        if self.form not in ("space", "body"):
-            raise ValueError(f"form must be 'space' (y' = X·y) or 'body' (y' = y·X), got {self.form!r}.")
         self.stage_solve  # checks the solve's options  # noqa: B018
         if self.coupling not in ("traced", "tableau"):
             raise ValueError(f"coupling must be 'traced' (read from the field's program) or 'tableau', got {self.coupling!r}.")
@@ -111,7 +108,6 @@ class PRKMK(AbstractMethod):
             raise ValueError(
                 f"explicit_stages='loop' needs an explicit tableau (A strictly lower triangular in both parts); {self.tableau.name} is not."
             )
-        self.bundle.check_coordinates(self.coordinates)
 
     @property
     def stage_solve(self) -> StageSolve:
@@ -133,24 +129,6 @@ class PRKMK(AbstractMethod):
     def start_field(self, carried):
         return carried[0]
 
-    def check_fits(self, vector_field: VectorField) -> None:
-        """Any field on the bundle (its shapes are checked by
-        `check_vector_field`); a field that names its bundle and form (a
-        scene, `AbstractFieldOnBundle`) must name this method's."""
-        if not isinstance(vector_field, AbstractFieldOnBundle):
-            return
-        name = type(vector_field).__name__
-        if eqx.tree_equal(vector_field.bundle, self.bundle) is not True:
-            raise ValueError(
-                f"{name} lives on {vector_field.bundle!r}, but this method was built for {self.bundle!r}: the same generator on "
-                f"another bundle is another system. Build the method from the scene (scene.method(tableau)) or on its bundle."
-            )
-        if vector_field.form != self.form:
-            raise ValueError(
-                f"{name} is written in {vector_field.form} form, but this method steps in {self.form} form: "
-                f"build it with form={vector_field.form!r} (scene.method(tableau) does)."
-            )
-
     def initial_carried(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None):
         """(X(t, y), the same field as every stage slope): a first step starts
         its implicit stages from the field at y."""
@@ -159,17 +137,14 @@ class PRKMK(AbstractMethod):
 
     def carried_step(self, vector_field: VectorField, t: Time, y: BundleElement, dt: Time, args: PyTree, carried) -> Step:
         """One step, its implicit stages started from the previous step's
-        (`carried`: the field at that step's start and its stage slopes),
-        extrapolated (`stages.extrapolated_guesses`)."""
+        (`carried`), extrapolated (`stages.extrapolated_guesses`)."""
         field_now, guesses = self._warm_start(vector_field, t, y, args, carried)
         return self._step(vector_field, t, y, dt, args, field_now, guesses, stages_solved=False)
 
     def step_at_stages(self, vector_field: VectorField, t: Time, y: BundleElement, dt: Time, args: PyTree, stages) -> Step:
         """The step from (t, y) whose stage slopes ((K₁, L₁), …, (K_s, L_s))
-        are known to solve its stage equations (to round-off): each implicit
-        block is evaluated once at them instead of iterated, and
-        differentiated as a solved block is (with a `root_finder`, solved
-        from them)."""
+        solve its stage equations (to round-off): each implicit block is
+        evaluated once there (a `root_finder` solves from there)."""
         self.check_vector_field(vector_field, t, y, args)
         check_stage_pairs("stages", stages, self.bundle.algebra_zeros(y), self.tableau.num_stages)
         return self._step(vector_field, t, y, dt, args, self.generator(vector_field, t, y, args), stages, stages_solved=True)
@@ -188,9 +163,8 @@ class PRKMK(AbstractMethod):
         return Adjoint(self)  # pyright: ignore[reportCallIssue]  # equinox: AbstractVars implemented by properties are not __init__ fields
 
     def for_reconstruction(self) -> "PRKMK":
-        """The product as it is and the iteration from the guess: the
-        backward pass rebuilds each state from a kept one, and needs it to
-        round-off, not a run's compensation or a drift without bias."""
+        """The product as it is and the iteration from the guess: a state
+        rebuilt from a kept one needs round-off, not a long run's refinements."""
         return dataclasses.replace(self, compensated_sum=False, start_either_side=False)
 
     def step_again(self, vector_field, t, y, dt, args, undone_carried) -> Step:
@@ -247,32 +221,14 @@ class PRKMK(AbstractMethod):
             return self.slope_at(vector_field, tt, (zeros[0] if u is None else u, v), y, args)
 
         plan = self.stage_plan(vector_field, t, y, args)
-        result, iterations = RESULTS.successful, jnp.array(0, jnp.int32)
         if stages_in_loop(self.explicit_stages, tab, zeros, self.bundle.base.algebra_ndim):
             computed = {c for part in plan if isinstance(part, Explicit) for c in part.components}  # all explicit here
             slope_at = lambda tt, U: self.slope_at(vector_field, tt, U, y, args)  # noqa: E731
             slopes = list(explicit_slopes_in_loop(tab, stage_slope, slope_at, computed, t, dt, zeros))
-            return self._push_forward(dt, y, slopes, zeros, result, iterations, field_now)
-        slopes: list[list] = [[None] * tab.num_stages, [None] * tab.num_stages]
-        for part in plan:
-            if isinstance(part, Explicit):
-                pair = stage_slope(part.stage, *slopes)
-                for c in part.components:
-                    slopes[c][part.stage] = pair[c]
-                continue
-
-            def block_slopes(block, part=part):
-                trial = [list(slopes[0]), list(slopes[1])]
-                for (i, c), value in zip(part.slopes, block):
-                    trial[c][i] = value
-                pairs = {i: stage_slope(i, *trial) for i in part.stages}
-                return tuple(pairs[i][c] for i, c in part.slopes)
-
-            guess = tuple(jnp.asarray(guesses[i][c], dtype) for i, c in part.slopes)
-            block, block_result, n = self.stage_solve(block_slopes, guess, dtype, guess_solves=stages_solved)
-            result, iterations = first_failure(result, block_result), iterations + n
-            for (i, c), value in zip(part.slopes, block):
-                slopes[c][i] = value
+            result, iterations = RESULTS.successful, jnp.array(0, jnp.int32)
+        else:
+            solve = lambda block_slopes, guess: self.stage_solve(block_slopes, guess, dtype, guess_solves=stages_solved)  # noqa: E731
+            slopes, result, iterations = slopes_by_plan(plan, tab.num_stages, stage_slope, guesses, solve, dtype)
         return self._push_forward(dt, y, slopes, zeros, result, iterations, field_now)
 
     def _push_forward(self, dt, y, slopes, zeros, result, iterations, field_now) -> Step:

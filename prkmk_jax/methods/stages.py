@@ -12,6 +12,8 @@ from jaxtyping import Array, PyTree
 
 from ..bundles import AlgebraPair
 from ..tableaus import PartitionedTableau
+from .base import RESULTS, first_failure
+from .stage_plan import Explicit
 
 STAGE_LOOP_BATCH = 16
 """From this many trajectories in the state on, `explicit_stages="auto"`
@@ -92,6 +94,36 @@ def explicit_slopes_in_loop(tableau: PartitionedTableau, stage_slope, slope_at: 
 
     buffers = jax.lax.fori_loop(1, tab.num_stages, one_stage, tuple(buffers))
     return tuple(list(b) if c in computed else [None] * tab.num_stages for c, b in enumerate(buffers))
+
+
+def slopes_by_plan(plan, num_stages: int, stage_slope, guesses, solve, dtype):
+    """The stage slopes in the order of the stage plan (`stage_plan`): an
+    explicit part evaluated by `stage_slope(i, first, second)`, an implicit
+    block solved by `solve(block_slopes, guess)` (a `StageSolve`) from
+    `guesses`. Returns ([K₁…K_s], [L₁…L_s]) (None where the plan computes
+    nothing: L when η ≡ 0), the first failure and the iterations."""
+    slopes: list[list] = [[None] * num_stages, [None] * num_stages]
+    result, iterations = RESULTS.successful, jnp.array(0, jnp.int32)
+    for part in plan:
+        if isinstance(part, Explicit):
+            pair = stage_slope(part.stage, *slopes)
+            for c in part.components:
+                slopes[c][part.stage] = pair[c]
+            continue
+
+        def block_slopes(block, part=part):
+            trial = [list(slopes[0]), list(slopes[1])]
+            for (i, c), value in zip(part.slopes, block):
+                trial[c][i] = value
+            pairs = {i: stage_slope(i, *trial) for i in part.stages}
+            return tuple(pairs[i][c] for i, c in part.slopes)
+
+        guess = tuple(jnp.asarray(guesses[i][c], dtype) for i, c in part.slopes)
+        block, block_result, n = solve(block_slopes, guess)
+        result, iterations = first_failure(result, block_result), iterations + n
+        for (i, c), value in zip(part.slopes, block):
+            slopes[c][i] = value
+    return slopes, result, iterations
 
 
 _UNSIGNED_OF_WIDTH = {2: jnp.uint16, 4: jnp.uint32, 8: jnp.uint64}
