@@ -8,8 +8,8 @@ import tempfile
 
 # XLA's CPU compiler: the settings the README recommends for compile-bound
 # work (many small programs, each run briefly, as here), set before JAX
-# starts its backend. Values differ from XLA's defaults in round-off only
-# (tests/test_xla_codegen.py). Left alone when XLA_FLAGS is set
+# starts its backend. Values differ from XLA's defaults in round-off only.
+# Left alone when XLA_FLAGS is set
 # (`XLA_FLAGS= pytest` runs under XLA's defaults). An XLA that does not know
 # a flag aborts the process, so they are tried in a subprocess first; the
 # xdist workers and the processes the end-to-end tests start inherit the
@@ -26,7 +26,6 @@ if "XLA_FLAGS" not in os.environ:
     os.environ["XLA_FLAGS"] = FAST_COMPILING_XLA_FLAGS if _probe.returncode == 0 else ""
 
 import jax  # noqa: E402
-import pytest  # noqa: E402
 from hypothesis import HealthCheck, settings  # noqa: E402
 
 # The cyclic garbage collector less often: tracing allocates many
@@ -47,6 +46,9 @@ jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE
 jax.config.update("jax_persistent_cache_min_compile_time_secs", float(os.environ.get("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")))
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", int(os.environ.get("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "-1")))
 jax.config.update("jax_enable_x64", True)
+# Four host devices: the sharding tests place batches on them; everything
+# else runs on the first, as on a one-device machine.
+jax.config.update("jax_num_cpu_devices", 4)
 # No Python tracebacks in the programs' debug locations, which XLA keeps as
 # metadata only; lowering is quicker without them.
 jax.config.update("jax_include_full_tracebacks_in_locations", False)
@@ -54,19 +56,3 @@ jax.config.update("jax_traceback_in_locations_limit", 0)
 
 settings.register_profile("prkmk", deadline=None, max_examples=40, suppress_health_check=[HealthCheck.too_slow], derandomize=True)
 settings.load_profile("prkmk")
-
-
-@pytest.fixture
-def xla_flags_with_llvm_passes() -> str:
-    """This run's XLA_FLAGS without `LLVM_PASSES_OFF`, for a process whose
-    compiled code runs long enough that LLVM's passes pay for themselves."""
-    return " ".join(flag for flag in os.environ.get("XLA_FLAGS", "").split() if flag != LLVM_PASSES_OFF)
-
-
-# The longest test (a subprocess compiling under XLA's defaults) goes first,
-# so that the xdist workers end together.
-RUN_FIRST = ("test_xla_codegen.py",)
-
-
-def pytest_collection_modifyitems(items):
-    items.sort(key=lambda item: item.path.name not in RUN_FIRST)  # stable: otherwise collection order

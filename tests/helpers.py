@@ -2,10 +2,6 @@
 an independent SciPy reference solution."""
 
 import functools
-import os
-import subprocess
-import sys
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -262,39 +258,3 @@ class PositiveReals(pk.groups.AbstractLieGroup):
 
     def product_change(self, change, side):
         return PositiveReals(self.value * change)
-
-
-def run_under_default_codegen(code: str, *args: str) -> None:
-    """Run `code` (a Python script) in a subprocess with XLA_FLAGS empty, so
-    that XLA compiles with its defaults (LLVM's optimisations on; the tests
-    otherwise compile without them, conftest.py), the tests' folder on its
-    path; raises if it fails."""
-    tests = Path(__file__).resolve().parent
-    path = os.pathsep.join([str(tests), os.environ.get("PYTHONPATH", "")])
-    env = dict(os.environ, XLA_FLAGS="", PYTHONPATH=path)
-    subprocess.run([sys.executable, "-c", code, *args], check=True, env=env, cwd=tests, timeout=300)
-
-
-def codegen_probe() -> dict[str, np.ndarray]:
-    """A few compiled programs whose values tests/test_xla_codegen.py compares
-    between XLA's CPU code generators: an implicit method (Lobatto IIIA–IIIB
-    4, symmetric body on SO(3)×SO(3)) and Störmer–Verlet on T*SO(3) with the
-    gradient of its final momentum in the inertia, through `integrate`."""
-    cartesian, cotangent = pk.Cartesian(pk.SO3), pk.Cotangent(pk.SO3)
-    inertia = jnp.asarray(INERTIA)
-    lobatto = pk.PRKMK(cartesian, pk.Exp(), pk.lobatto_iiia_iiib4, form="body")
-    lobatto_field, lobatto_y0 = rigid_body_field(cartesian, "body"), initial_state(cartesian)
-    lobatto_ys = jax.jit(lambda i: pk.integrate(lobatto, lobatto_field, lobatto_y0, 0.0, 0.05, 200, i).ys)(inertia)
-    verlet = pk.PRKMK(cotangent, pk.Exp(), pk.stormer_verlet, form="body")
-    verlet_field, verlet_y0 = rigid_body_field(cotangent, "body"), initial_state(cotangent)
-
-    def final_momentum(i):
-        return pk.integrate(verlet, verlet_field, verlet_y0, 0.0, 0.05, 200, i, save_every=200).ys.fiber[-1]
-
-    momentum, jacobian = jax.jit(lambda i: (final_momentum(i), jax.jacrev(final_momentum)(i)))(inertia)
-    return {
-        "lobatto_q": np.asarray(lobatto_ys.base.matrix),
-        "lobatto_p": np.asarray(lobatto_ys.fiber.matrix),
-        "verlet_momentum": np.asarray(momentum),
-        "verlet_jacobian": np.asarray(jacobian),
-    }

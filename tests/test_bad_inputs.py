@@ -2,11 +2,6 @@
 message names the problem (static misuse at trace time, bad data at run
 time, under `jax.jit` too), and a few plausible inputs are accepted."""
 
-import os
-import subprocess
-import sys
-from pathlib import Path
-
 import diffrax
 import jax
 import jax.numpy as jnp
@@ -279,54 +274,3 @@ def test_rounding_drift_is_accepted_and_a_scaled_matrix_is_not():
         assert ys.fiber.dtype == dtype and np.all(np.isfinite(ys.fiber))
     with pytest.raises(Exception, match="not orthogonal"):
         _integrate(_with_base(rotation * (1 + 1e-3)))
-
-
-_CACHE_SCRIPT = """
-import os, pathlib, sys
-import jax, jax.numpy as jnp
-jax.config.update("jax_enable_x64", True)
-jax.config.update("jax_compilation_cache_dir", sys.argv[1])
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-import prkmk_jax as pk
-from helpers import INERTIA, initial_state, rigid_body_field
-
-bundle = pk.Cartesian(pk.SO3)
-field = rigid_body_field(bundle, "body")
-y0 = initial_state(bundle)
-nan_mode = os.environ.get("EQX_ON_ERROR") == "nan"
-
-@jax.jit
-def too_large_a_step(y0):  # symplectic Euler at h = 1: the fixed-point map is no contraction
-    method = pk.PRKMK(bundle, pk.Exp(), pk.symplectic_euler, form="body", max_iterations=30)
-    return pk.integrate(method, field, y0, 0.0, 1.0, 5, jnp.asarray(INERTIA), throw=nan_mode)
-
-@jax.jit
-def from_a_scaled_matrix(matrix):
-    method = pk.PRKMK(bundle, pk.Exp(), pk.stormer_verlet, form="body")
-    return pk.integrate(method, field, pk.BundleElement(pk.SO3(matrix), y0.fiber), 0.0, 0.1, 5, jnp.asarray(INERTIA))
-
-programs = {"jit_too_large_a_step", "jit_from_a_scaled_matrix"}
-cache = pathlib.Path(sys.argv[1])
-if nan_mode:
-    for traj in (too_large_a_step(y0), from_a_scaled_matrix(2.0 * jnp.eye(3))):
-        assert traj.result == pk.RESULTS.nonlinear_max_steps_reached, traj.result
-        assert bool(jnp.all(jnp.isnan(traj.ys.base.matrix[-1])))
-    assert programs <= {p.name.split("-")[0] for p in cache.glob("jit_*")}
-else:
-    assert too_large_a_step(y0).result == pk.RESULTS.nonlinear_max_steps_reached
-    from_a_scaled_matrix(jnp.eye(3))
-    assert not programs & {p.name.split("-")[0] for p in cache.glob("jit_*")}
-"""
-
-
-@pytest.mark.parametrize("on_error", ["raise", "nan"])
-def test_which_integrations_the_compilation_cache_keeps(on_error, tmp_path):
-    """docs/concepts/errors.md: the run-time checks are host callbacks, so
-    JAX's persistent cache does not store the integrations; with
-    EQX_ON_ERROR=nan they have none and are stored, and a failed stage or a
-    scaled rotation as y0 gives NaN states and a failed result."""
-    tests = Path(__file__).resolve().parent
-    env = dict(os.environ, EQX_ON_ERROR=on_error, PYTHONPATH=str(tests))
-    script = tmp_path / "cache.py"
-    script.write_text(_CACHE_SCRIPT)
-    subprocess.run([sys.executable, str(script), str(tmp_path / "xla")], check=True, env=env, cwd=tests, timeout=300)

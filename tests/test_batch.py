@@ -1,29 +1,20 @@
-"""Sharding a batch over devices: 4 CPU devices forced in a subprocess."""
+"""Sharding a batch over devices: the four CPU devices of the test run."""
 
-import subprocess
-import sys
-import textwrap
-from pathlib import Path
-
+import diffrax
+import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import prkmk_jax as pk
+from helpers import INERTIA, initial_state, rigid_body_field
 
-ROOT = Path(__file__).resolve().parents[1]
 
-SCRIPT = textwrap.dedent(
-    """
-    import os
-    # The test run's XLA flags (conftest.py), with 4 host devices added.
-    os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
-    import sys
-    sys.path.insert(0, "tests")
-    import diffrax, equinox as eqx, jax, jax.numpy as jnp, numpy as np
-    jax.config.update("jax_enable_x64", True)
-    import prkmk_jax as pk
-    from helpers import INERTIA, initial_state, rigid_body_field
-
+def test_sharded_batch_equals_unsharded_on_four_devices():
+    """A batch placed on the four CPU devices (conftest.py) runs as the
+    unsharded batch does, through both drivers, with gradients, in float32,
+    and with its run-time checks."""
     assert len(jax.devices()) == 4, jax.devices()
     bundle = pk.Cotangent(pk.SO3)
     field = rigid_body_field(bundle, "body")
@@ -90,27 +81,18 @@ SCRIPT = textwrap.dedent(
             assert "6 rows" in str(error) and "4 device" in str(error), error
         else:
             raise AssertionError("6 rows split over 4 devices")
-    print("sharded ok")
-    """
-)
-
-
-def test_sharded_batch_equals_unsharded_on_four_devices():
-    out = subprocess.run([sys.executable, "-c", SCRIPT], cwd=ROOT, capture_output=True, text=True, timeout=600)
-    assert out.returncode == 0, out.stderr[-3000:]
-    assert "sharded ok" in out.stdout
 
 
 def test_shard_batch_checks_the_batch_axis():
     with pytest.raises(ValueError, match="leading batch axis"):
         pk.shard_batch(jnp.float64(1.0))
-    sharded = pk.shard_batch({"a": jnp.ones((3, 2))})  # one device here: any size divides
-    assert sharded["a"].shape == (3, 2)
+    sharded = pk.shard_batch({"a": jnp.ones((8, 2))})
+    assert sharded["a"].shape == (8, 2) and len(sharded["a"].sharding.device_set) == len(jax.devices())
 
 
 def test_vmap_over_devices_refuses_what_it_cannot_split():
     double = pk.vmap_over_devices(lambda x, c: 2 * x + c, in_axes=(0, None))
-    assert jnp.array_equal(double(jnp.arange(3.0), 1.0), 2 * jnp.arange(3.0) + 1)
+    assert jnp.array_equal(double(jnp.arange(8.0), 1.0), 2 * jnp.arange(8.0) + 1)
     with pytest.raises(ValueError, match="in_axes entries are 0 or None"):
         pk.vmap_over_devices(lambda x: x, in_axes=1)(jnp.ones((2, 2)))
     with pytest.raises(ValueError, match="in_axes has 1 entries for 2 arguments"):

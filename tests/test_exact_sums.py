@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import INERTIA, random_rotation, rigid_body_field, run_under_default_codegen
+from helpers import INERTIA, random_rotation, rigid_body_field
 from prkmk_jax.exact_sums import rounded_once_combination
 
 WEIGHTS = {
@@ -88,23 +88,6 @@ def assert_rounded_once(errors: dict[str, tuple[np.ndarray, np.ndarray]]):
 @pytest.mark.parametrize("fused", [False, True], ids=["alone", "fused"])
 def test_combination_is_rounded_once(dtype_name, fused):
     assert_rounded_once(combination_errors(dtype_name, fused))
-
-
-_DEFAULT_CODEGEN = """
-import jax
-jax.config.update("jax_enable_x64", True)
-from test_exact_sums import assert_rounded_once, combination_errors
-for dtype_name in ("float64", "float32"):
-    for fused in (False, True):
-        assert_rounded_once(combination_errors(dtype_name, fused))
-"""
-
-
-def test_combination_is_rounded_once_under_default_codegen():
-    """XLA's default CPU code generator, with LLVM's optimisations, is where
-    multiply-adds are contracted (the tests otherwise compile without them:
-    conftest.py)."""
-    run_under_default_codegen(_DEFAULT_CODEGEN)
 
 
 def test_combination_refuses_integer_slopes():

@@ -12,7 +12,6 @@ import pytest
 
 import prkmk_jax as pk
 from helpers import INERTIA, empirical_order, final_state_by_steps, initial_state, max_leaf_difference, rigid_body_field, scene_reference
-from prkmk_jax.methods.stage_plan import Explicit
 from prkmk_jax.scenes import FreeRigidBody, HeavyTop, TopParameters, random_rotation
 
 TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
@@ -90,17 +89,6 @@ def test_stages_in_a_loop_give_the_unrolled_step(top, coords):
         runs[layout] = jax.jit(lambda y, m=method: pk.integrate(m, top, y, 0.0, 0.1, 30, TOP_ARGS, save_every=30).ys)(y0)
     assert max_leaf_difference(runs["loop"], runs["unrolled"]) < 1e-13
     assert max_leaf_difference(runs["auto"], runs["loop"]) == 0.0  # 20 trajectories: auto takes the loop
-
-
-def test_auto_layout_follows_the_batch():
-    top = TOPS["direct product"]
-    auto = top.method(pk.dormand_prince_8, pk.Cayley())
-    assert all(isinstance(p, Explicit) for p in auto.stage_plan(top, 0.0, TOP_Y0, TOP_ARGS))
-    assert not _program_has_a_loop(auto, top, TOP_Y0, TOP_ARGS)
-    assert _program_has_a_loop(auto, top, _batch_state(pk.methods.stages.STAGE_LOOP_BATCH), TOP_ARGS)
-    assert not _program_has_a_loop(auto, top, _batch_state(pk.methods.stages.STAGE_LOOP_BATCH - 1), TOP_ARGS)
-    forced = pk.PRKMK(top.bundle, pk.Cayley(), pk.dormand_prince_8, form="body", explicit_stages="loop")
-    assert _program_has_a_loop(forced, top, TOP_Y0, TOP_ARGS)
 
 
 def test_layout_errors():

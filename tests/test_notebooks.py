@@ -18,15 +18,10 @@ EXPECTED = [
     "06_fit_control_torque",
     "07_fit_over_a_long_horizon",
 ]
-# The notebooks whose kernels keep LLVM's optimisation passes (off in the
-# other tests, conftest.py): their batches run long enough for the passes to
-# pay for themselves.
-KEEP_LLVM_PASSES = {"03_batch_tumbling", "04_where_methods_fail"}
 
 
 def test_the_notebooks_are_there():
     assert [p.stem for p in NOTEBOOKS] == EXPECTED
-    assert KEEP_LLVM_PASSES <= set(EXPECTED)
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
@@ -45,11 +40,9 @@ def test_committed_with_outputs_question_and_answer(path):
 
 @pytest.mark.end_to_end
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
-def test_notebook_runs(path, monkeypatch, xla_flags_with_llvm_passes):
+def test_notebook_runs(path, monkeypatch):
     monkeypatch.setenv("PRKMK_NOTEBOOK_SMALL", "1")
     monkeypatch.setenv("MPLBACKEND", "Agg")
-    if path.stem in KEEP_LLVM_PASSES:
-        monkeypatch.setenv("XLA_FLAGS", xla_flags_with_llvm_passes)
     nb = nbformat.read(path, as_version=4)
     client = NotebookClient(nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOK_DIR)}})
     client.execute()  # raises CellExecutionError, with the cell and traceback, if any cell fails

@@ -2,7 +2,6 @@
 the reproduce command."""
 
 import json
-import os
 from pathlib import Path
 
 import jax
@@ -16,9 +15,6 @@ from prkmk_jax import reproduce as rp
 from prkmk_jax.scenes import rigid_body as rb
 
 RUNS = {r.name: r for r in rp.paper_runs()}
-
-# One xdist worker runs this module's tests, so the §5 runs execute once.
-pytestmark = pytest.mark.xdist_group("section5")
 
 
 @pytest.fixture(scope="module")
@@ -297,12 +293,3 @@ def test_reproduce_command(tmp_path, capsys):
     # Progress: one line per finished run, as it finishes.
     runs = len(rp.paper_runs())
     assert all(f"[{i:2d}/{runs}]" in out for i in range(1, runs + 1))
-
-
-def test_this_module_runs_on_one_worker(request):
-    """Under xdist's loadgroup (the default addopts) the node id carries the
-    group, which keeps the §5 runs above on one worker; pytest 9.2 with
-    xdist 3.8 loses it silently."""
-    if "PYTEST_XDIST_WORKER" not in os.environ or not vars(request.config.option).get("loadgroup"):
-        pytest.skip("not distributed with --dist loadgroup")
-    assert request.node.nodeid.endswith("@section5")

@@ -13,7 +13,6 @@ import pytest
 
 import prkmk_jax as pk
 from helpers import INERTIA, empirical_order, initial_state, max_leaf_difference, random_rotation, rigid_body_field
-from prkmk_jax.methods.base import RESULTS, batched_like
 from prkmk_jax.methods.stage_plan import Implicit
 
 H = 0.1
@@ -312,20 +311,3 @@ def test_carried_of_the_wrong_structure_is_refused():
         method.step(field, 0.0, y0, H, args, ((zero,), ((zero, zero),) * 3))
     with pytest.raises(ValueError, match="carried must be"):
         method.step(field, 0.0, y0, H, args, ((zero, zero),))
-
-
-def test_batched_like_keeps_values_and_is_batched_under_vmap():
-    """A loop's starting carry made to vary with the state: the same values
-    (whatever the state holds, NaN included), batched where the state is,
-    and the select that does it folded away by XLA."""
-    start = (jnp.zeros(3), RESULTS.successful, jnp.array(7, jnp.int32))
-    for state in (jnp.ones((4, 2)), jnp.full((4, 2), jnp.nan), jnp.zeros((4, 0, 2))):
-        out = jax.vmap(lambda y: batched_like(start, y))(state)
-        assert out[0].shape == (4, 3) and out[2].shape == (4,)
-        assert jnp.all(out[0] == 0) and jnp.all(out[2] == 7) and jnp.all(out[1]._value == RESULTS.successful._value)
-    # Batched: vmap refuses to hand it back unmapped (the constant itself it would).
-    jax.vmap(lambda y: jnp.zeros(3), out_axes=None)(jnp.ones((4, 2)))
-    with pytest.raises(ValueError, match="out_axes"):
-        jax.vmap(lambda y: batched_like(jnp.zeros(3), y), out_axes=None)(jnp.ones((4, 2)))
-    assert batched_like((jnp.zeros(2), "static"), jnp.ones(2))[1] == "static"
-    assert " select(" not in jax.jit(lambda y: batched_like(jnp.zeros(3), y)).lower(jnp.ones(2)).compile().as_text()
