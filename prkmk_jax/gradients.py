@@ -27,8 +27,8 @@ import jax.numpy as jnp
 from .loop import (
     check_reversible_options,
     checked_gradients,
-    counted_start,
-    counted_step,
+    loop_body,
+    loop_start,
     reconstruction_gap,
     reconstruction_tolerance,
     step_back,
@@ -61,8 +61,8 @@ class StoredSteps(AbstractGradient):
 
     def run(self, method, vector_field, y, compensation, carried, t0, dt, steps_done, args, num_saves, save_every) -> tuple:
         policy = jax.checkpoint_policies.save_only_these_names(STAGE_SLOPES_NAME)
-        one_step = jax.checkpoint(counted_step(method, vector_field, t0, dt, args), prevent_cse=False, policy=policy)
-        init = counted_start(y, carried, compensation)
+        one_step = jax.checkpoint(loop_body(method, vector_field, t0, dt, args), prevent_cse=False, policy=policy)
+        init = loop_start(y, carried, compensation)
         (y_last, compensation, result, total, worst, carried), saved = steps_forward(one_step, init, steps_done, (num_saves, save_every))
         return saved, (y_last, compensation), result, total, worst, carried
 
@@ -127,9 +127,9 @@ def _outputs_and_kept(diff, method, start, t0, dt, steps_done, counts):
     its rounding)."""
     y0, args, vector_field = diff
     carried0, compensation0 = start
-    init = counted_start(y0, carried0, compensation0)
+    init = loop_start(y0, carried0, compensation0)
     (y_last, compensation, result, total, worst, carried), kept = steps_forward(
-        counted_step(method, vector_field, t0, dt, args), init, steps_done, counts
+        loop_body(method, vector_field, t0, dt, args), init, steps_done, counts
     )
     saved = jax.tree.map(lambda x: x[:, -1], kept)  # each save interval's last stretch ends at the saved state
     return (saved, y_last, result, total, worst, carried, compensation), kept

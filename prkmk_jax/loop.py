@@ -41,10 +41,10 @@ def checked_start(method: AbstractMethod, vector_field: VectorField, y: BundleEl
     return y, t, checked_args
 
 
-def counted_step(method: AbstractMethod, vector_field: VectorField, t0, dt, args: PyTree):
+def loop_body(method: AbstractMethod, vector_field: VectorField, t0, dt, args: PyTree):
     """The body of a fixed-step `lax.scan` over step numbers n: step n runs
     from t0 + n·dt, its sum compensated (`compensated`); the carry is a
-    `Carry` (`counted_start`)."""
+    `Carry` (`loop_start`)."""
 
     def one_step(carry, n):
         y, compensation, result, total, worst, carried = carry
@@ -56,7 +56,7 @@ def counted_step(method: AbstractMethod, vector_field: VectorField, t0, dt, args
     return one_step
 
 
-def counted_start(y: BundleElement, carried: Any, compensation: BundleElement | None = None) -> Carry:
+def loop_start(y: BundleElement, carried: Any, compensation: BundleElement | None = None) -> Carry:
     """The `Carry` before the first step (no compensation yet, unless a
     continued run hands on its own), batched like `y` (`batched_like`)."""
     zero = jnp.array(0, jnp.int32)

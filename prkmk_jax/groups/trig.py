@@ -18,7 +18,8 @@ import math
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+import numpy as np
+from jaxtyping import Array, Float, PyTree
 
 # π/2 = sum of the parts; the leading parts have few significant bits, so
 # n·part is exact for the quadrant counts n that occur (|n| < 2²⁰ in float64
@@ -33,15 +34,23 @@ _HALF_PI_PARTS = {
 _TERMS = {64: (9, 10), 32: (5, 6)}
 
 
-def computed_once(first: Array, second: Array) -> tuple[Array, Array]:
-    """Two arrays of one shape and dtype, each computed once by XLA.
+def computed_once(*trees: PyTree) -> PyTree:
+    """The arrays of `trees`, each computed once by XLA; returns the trees
+    (one tree: that tree).
 
     XLA fuses arithmetic into every consumer that reads it, so a sine and
-    cosine read by many rows of a rotation would be evaluated again in
-    each. A barrier on the pair stacked as one array keeps it whole (a
-    barrier on the tuple does not: XLA's fusion goes through it)."""
-    stacked = jax.lax.optimization_barrier(jnp.stack([first, second]))
-    return stacked[0], stacked[1]
+    cosine read by many rows of a rotation, or a step's change read twice
+    by an error-free sum, would be evaluated again in each. A barrier on
+    the arrays raveled into one keeps them whole (a barrier on a tuple does
+    not: XLA's fusion goes through it)."""
+    leaves, structure = jax.tree.flatten(trees)
+    if len({jnp.result_type(leaf) for leaf in leaves}) > 1:
+        raise TypeError(f"computed_once takes arrays of one dtype, got {sorted({str(jnp.result_type(x)) for x in leaves})}.")
+    flat = jax.lax.optimization_barrier(jnp.concatenate([jnp.ravel(leaf) for leaf in leaves]))
+    ends = np.cumsum([jnp.size(leaf) for leaf in leaves])
+    parts = [flat[end - jnp.size(leaf) : end].reshape(jnp.shape(leaf)) for leaf, end in zip(leaves, ends)]
+    out = jax.tree.unflatten(structure, parts)
+    return out[0] if len(trees) == 1 else out
 
 
 def _series(r2: Array, first: int, count: int) -> Array:

@@ -18,13 +18,13 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, PyTree
 
 from ..bundles import AbstractBundle, AlgebraPair, BundleElement, Increment
 from ..coordinates import AbstractCoordinates
 from ..exact_sums import two_sum
 from ..fields import AbstractFieldOnBundle, Iterations, Time, VectorField
+from ..groups.trig import computed_once
 
 RESULTS = diffrax.RESULTS
 LOW_PRECISION_EPS = 1e-10
@@ -79,19 +79,6 @@ def tree_two_sum(a: PyTree, b: PyTree) -> tuple[PyTree, PyTree]:
     return jax.tree.map(lambda _, pair: pair[0], a, summed), jax.tree.map(lambda _, pair: pair[1], a, summed)
 
 
-def computed_once_tree(tree: PyTree) -> PyTree:
-    """`tree`'s arrays, each computed once by XLA: raveled into one array
-    behind an optimisation barrier (`groups.computed_once`: a barrier on a
-    tuple is fused through). An error-free sum reads each of its operands
-    twice, and XLA would otherwise recompute the arithmetic behind them, a
-    step's whole update, in each reader."""
-    leaves, structure = jax.tree.flatten(tree)
-    flat = jax.lax.optimization_barrier(jnp.concatenate([jnp.ravel(leaf) for leaf in leaves]))
-    ends = np.cumsum([leaf.size for leaf in leaves])
-    parts = [flat[end - leaf.size : end].reshape(leaf.shape) for leaf, end in zip(leaves, ends)]
-    return jax.tree.unflatten(structure, parts)
-
-
 def compensated(y: BundleElement, rounding: BundleElement | None, compensation: BundleElement) -> tuple[BundleElement, BundleElement]:
     """One update of a run's compensated summation (Kahan): the state `y` a
     step returned, plus what its update lost to rounding (`Step.rounding`)
@@ -114,7 +101,7 @@ def compensated(y: BundleElement, rounding: BundleElement | None, compensation: 
     if rounding is None:
         return y, compensation
     small = jax.lax.stop_gradient(jax.tree.map(jnp.add, rounding, compensation))
-    y_next, lost = tree_two_sum(*computed_once_tree((y, small)))
+    y_next, lost = tree_two_sum(*computed_once((y, small)))
     return y_next, jax.lax.stop_gradient(lost)
 
 
@@ -324,7 +311,7 @@ class AbstractMethod(eqx.Module):
             return self.bundle.renormalized(self.apply_increment(U, y)), None
         if not compensate:
             return self.apply_increment(U, y), None
-        change = computed_once_tree(self.bundle.apply_change(self.coordinates, U, y, self.form))
+        change = computed_once(self.bundle.apply_change(self.coordinates, U, y, self.form))
         y_next, rounding = tree_two_sum(y, change)
         return y_next, jax.lax.stop_gradient(rounding)
 
