@@ -92,8 +92,9 @@ def integrate(
     """Integrate from `t0` with `num_steps` steps of size `dt`, saving `y0`
     and every `save_every`-th state.
 
-    Compiled once per shape of its inputs (`eqx.filter_jit`: arrays are
-    traced, Python numbers and the method are static), differentiable with respect to `y0` and `args`, and
+    Compiled once per shape of its inputs (`eqx.filter_jit`: arrays, `t0`
+    and `dt` are traced; the method and the counts are static),
+    differentiable with respect to `y0` and `args`, and
     `vmap`-able over batches of `y0` and `args`. With `throw=True` a failed
     implicit stage or a non-finite state raises at run time; otherwise it is
     reported in `Trajectory.result`.

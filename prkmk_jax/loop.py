@@ -83,15 +83,12 @@ def steps_forward(one_step, init: Carry, first_step, counts: tuple[int, ...]):
         inner = nested(depth + 1)
         return lambda carry, first: jax.lax.scan(inner, carry, first + span * jnp.arange(counts[depth], dtype=jnp.int32))
 
-    if len(counts) == 1:
-        return nested(0)(init, first_step)
-    span = math.prod(counts[1:])
-    return jax.lax.scan(nested(1), init, first_step + span * jnp.arange(counts[0], dtype=jnp.int32))
+    return nested(0)(init, first_step)
 
 
 def step_back(
     method: AbstractMethod, undo: AbstractMethod, params_dynamic, params_static, t_start, t_end, dt, y_next, cotangent, undo_carried, result
-):  # noqa: E501
+):
     """The step of `method` from t_start to t_end = t_start + dt that ended at
     `y_next` undone, and `cotangent` pulled back through it: (the step's
     start, its cotangent, the parameters' cotangent, what the undoing step

@@ -39,7 +39,7 @@ from ..coordinates import AbstractCoordinates, Exp
 from ..exact_flows import AbstractSplitScene, renormalized_rotations
 from ..fields import Time, VectorField
 from ..groups.trig import computed_once
-from .base import LOW_PRECISION_EPS, RESULTS, AbstractMethod, Step, flag_nonfinite
+from .base import LOW_PRECISION_EPS, RESULTS, AbstractMethod, Step, check_parts, flag_nonfinite
 
 FUSED_SUB_STEPS = 5
 """At most this many sub-steps of a step are left to XLA to fuse; then
@@ -112,9 +112,7 @@ class Splitting(AbstractMethod):
                     f"{self.coefficients.name} raises a symmetric base of order {self.coefficients.base_order}; "
                     "the Strang splitting has order 2 (use e.g. triple_jump(2), suzuki_5, kahan_li_6, kahan_li_8)."
                 )
-        if not isinstance(self.coordinates, AbstractCoordinates):
-            raise TypeError(f"coordinates must be an AbstractCoordinates such as Exp() or Cayley(), got {self.coordinates!r}.")
-        self.scene.bundle.check_coordinates(self.coordinates)
+        check_parts(self.scene.bundle, self.coordinates, self.scene.form)
 
     @property
     def bundle(self):  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a property implements an AbstractVar
