@@ -45,18 +45,6 @@ def initial_conditions(batch: int | None, seed: int = 0, scale: float = 1.0):
 
 
 # --- the embedding ℝ⁹×ℝ³ -----------------------------------------------------------
-# SciPy's peers (work_precision.py) get the field in NumPy, as a SciPy user
-# would write it: a compiled JAX call per evaluation would time JAX's
-# dispatch rather than the solver. Everything else reads the scene's own
-# `embedding_field`.
-def _hat_np(w):
-    return np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
-
-
-def embedding_rhs_np(t, z, inertia):
-    q, pi = z[:9].reshape(3, 3), z[9:]
-    omega = pi / inertia
-    return np.concatenate([(q @ _hat_np(omega)).ravel(), np.cross(pi, omega)])
 
 
 SCENE = FreeRigidBody()
@@ -64,11 +52,6 @@ SCENE = FreeRigidBody()
 vector field (`SCENE.method(tableau)` builds them) and, through
 `SCENE.embedding_field`, the peers' field on the flat 12-vector."""
 embedding_rhs = SCENE.embedding_field
-
-
-def to_vector(q, pi):
-    q, pi = np.asarray(q), np.asarray(pi)
-    return np.concatenate([q.reshape(*q.shape[:-2], 9), pi], axis=-1)
 
 
 def from_vector(z):
@@ -85,11 +68,6 @@ def reference(q0, pi0, t_end, inertia=INERTIA, t_eval=None, tol=1e-13):
 
 
 # --- measures ----------------------------------------------------------------------
-def geodesic_distance(q, q_ref):
-    """Angle of the rotation q_refᵀq, 2·arcsin(‖q_refᵀq − I‖_F / √8) (accurate
-    for small angles, unlike arccos of the trace)."""
-    r = np.swapaxes(np.asarray(q_ref), -1, -2) @ np.asarray(q)
-    return 2 * np.arcsin(np.minimum(np.linalg.norm(r - np.eye(3), axis=(-2, -1)) / np.sqrt(8), 1.0))
 
 
 def invariants(q, pi, inertia=INERTIA):
@@ -133,16 +111,7 @@ def _final(term, solver, to_state, split, adaptive, t_eval):
         controller = diffrax.PIDController(rtol=rtol, atol=rtol) if adaptive else diffrax.ConstantStepSize()
         saveat = diffrax.SaveAt(t1=True) if t_eval is None else diffrax.SaveAt(ts=t_eval)
         sol = diffrax.diffeqsolve(
-            term,
-            solver,
-            0.0,
-            t1,
-            dt,
-            to_state(q0, pi0),
-            inertia,
-            saveat=saveat,
-            stepsize_controller=controller,
-            max_steps=MAX_STEPS,
+            term, solver, 0.0, t1, dt, to_state(q0, pi0), inertia, saveat=saveat, stepsize_controller=controller, max_steps=MAX_STEPS
         )
         q, pi = split(sol.ys)
         return ((q[-1], pi[-1]) if t_eval is None else (q, pi)), sol.stats["num_accepted_steps"]
@@ -166,21 +135,11 @@ def diffrax_final(solver, adaptive, t_eval=None):
     """`_final` for a diffrax Runge–Kutta solver on the embedding ℝ⁹×ℝ³; an
     adaptive run chooses its own first step."""
     run = _final(
-        diffrax.ODETerm(embedding_rhs),
-        solver,
-        lambda q0, pi0: jnp.concatenate([q0.reshape(9), pi0]),
-        from_vector,
-        adaptive,
-        t_eval,
+        diffrax.ODETerm(embedding_rhs), solver, lambda q0, pi0: jnp.concatenate([q0.reshape(9), pi0]), from_vector, adaptive, t_eval
     )
     if not adaptive:
         return run
     return lambda q0, pi0, t1, dt, rtol, inertia: run(q0, pi0, t1, None, rtol, inertia)
-
-
-def batched(run):
-    """vmap over the initial conditions only."""
-    return jax.vmap(run, in_axes=(0, 0, None, None, None, None))
 
 
 # --- figures -------------------------------------------------------------------------
@@ -192,20 +151,11 @@ def plot_against_wall(axes, keys, rows):
     `rows["wall_s"]` for the successful runs (``ok``), in order of cost;
     values below 1e-17 are drawn at 1e-17."""
     for method in sorted({r["method"] for r in rows}):
-        pts = sorted(
-            (r for r in rows if r["method"] == method and r["ok"]),
-            key=lambda r: r["wall_s"],
-        )
+        pts = sorted((r for r in rows if r["method"] == method and r["ok"]), key=lambda r: r["wall_s"])
         if not pts:
             continue
         for ax, key in zip(axes, keys):
-            ax.loglog(
-                [p["wall_s"] for p in pts],
-                [max(p[key], 1e-17) for p in pts],
-                FAMILY_STYLES[pts[0]["family"]],
-                ms=4,
-                label=method,
-            )
+            ax.loglog([p["wall_s"] for p in pts], [max(p[key], 1e-17) for p in pts], FAMILY_STYLES[pts[0]["family"]], ms=4, label=method)
 
 
 # --- timing --------------------------------------------------------------------------
@@ -271,15 +221,33 @@ def machine():
     )
 
 
-def earlier_results(path: Path) -> dict:
-    """The results file of an earlier run, which a script's partial rerun
-    adds rows to: refused where it was measured on another machine or jax
-    version, whose rows would not compare with the new ones."""
-    with open(path) as f:
-        earlier = json.load(f)
-    if earlier["machine"] != machine():
-        raise SystemExit(f"{path} was measured on another machine or jax version; run the whole script instead.")
-    return earlier
+def device_name(machine: dict) -> str:
+    card = machine.get("card (nvidia-smi)") or machine.get("device_kind", "")
+    if machine.get("devices", ["cpu"])[0].startswith("cpu") or card.lower() == "cpu":
+        return f"CPU, {machine['cpus']} cores"
+    return card
+
+
+def measured_on(data: dict) -> str:
+    """The opening line of a table: the machine and jax version of its results."""
+    return f"Measured on {device_name(data['machine'])}, jax {data['machine']['jax']}."
+
+
+def results_file(folder: Path, name: str) -> dict:
+    return json.loads((folder / name).read_text())
+
+
+def table(headers: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def number(value, spec: str) -> str:
+    """`value` formatted, or "–" where there is none (None, NaN)."""
+    if value is None or (isinstance(value, float) and value != value):
+        return "–"
+    return format(value, spec)
 
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -296,9 +264,7 @@ def cli(doc, argv, add_arguments=None):
     parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="tiny sizes, for a smoke test")
     parser.add_argument(
-        "--out",
-        default=None,
-        help="folder for PNG/CSV/JSON (default: benchmarks/results, or a scratch folder with --quick)",
+        "--out", default=None, help="folder for PNG/CSV/JSON (default: benchmarks/results, or a scratch folder with --quick)"
     )
     if add_arguments is not None:
         add_arguments(parser)

@@ -32,6 +32,7 @@ import resource
 import socket
 import subprocess
 import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -125,20 +126,71 @@ def compared(row) -> bool:
     return "jit_vmap_over_vmap_over_devices" in row
 
 
+def ensembles_table(results: Path) -> str:
+    """`ensembles.py`: ensemble throughput, efficiency per device and memory
+    per process against the number of processes and devices per process."""
+    data = C.results_file(results, "ensembles.json")
+    rows = [
+        [
+            str(r["processes"]),
+            str(r["devices_per_process"]),
+            f"{r['median_s']['forward']:.3f}",
+            f"{r['median_s']['value_and_grad']:.3f}",
+            f"{r['throughput']['forward'] / 1e6:.2f}",
+            f"{r['throughput']['value_and_grad'] / 1e6:.2f}",
+            f"{r['efficiency_per_device']['forward']:.2f}",
+            f"{r['efficiency_per_device']['value_and_grad']:.2f}",
+            f"{r['compile_s']['forward']:.1f} / {r['compile_s']['value_and_grad']:.1f}",
+            " / ".join(f"{m:.0f}" for m in r["peak_rss_mb"]),
+        ]
+        for r in data["rows"]
+    ]
+    headers = [
+        "processes",
+        "devices each",
+        "forward, s",
+        "value and gradient, s",
+        "forward, 10⁶ trajectory-steps/s",
+        "gradient, 10⁶ trajectory-steps/s",
+        "efficiency per device, forward",
+        "efficiency per device, gradient",
+        "compile forward / gradient, s",
+        "peak RSS per process, MB",
+    ]
+    compared = [r for r in data["rows"] if "jit_vmap_over_vmap_over_devices" in r]
+    routes = "".join(
+        f" With {r['devices']} devices in one process, `jit(vmap(...))` of the sharded batch took "
+        f"{r['jit_vmap_over_vmap_over_devices']:.1f}× the time of `vmap_over_devices`."
+        for r in compared
+    )
+    return (
+        C.measured_on(data)
+        + f" Batch {data['batch']} × {data['steps']} steps, h = {data['h']}, median of {data['rounds']} rounds."
+        + routes
+        + "\n\n"
+        + C.table(headers, rows)
+    )
+
+
+def tables(results: Path) -> dict[str, str]:
+    """This script's tables, made from its results in `results` (`write_tables.py`)."""
+    return {"ensembles": ensembles_table(results)}
+
+
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["--worker"]:
         print(json.dumps(worker(**json.loads(argv[1]))))
-        return
+        return None  # a worker: its parent writes the results
     args, out = C.cli(__doc__, argv)
     if args.quick:
-        layouts, batch, steps, rounds = ((1, 1), (2, 1)), 8, 20, 2
+        layouts, batch, steps, rounds = ((2, 1),), 8, 20, 2  # two processes: the code of every layout
     else:
         layouts, batch, steps, rounds = ((1, 1), (1, 2), (1, 4), (2, 1), (2, 2), (4, 1)), 256, 2000, 7
     rows = []
     print(f"{'processes':>9s} {'devices':>7s} {'forward s':>9s} {'grad s':>8s} {'Msteps/s':>9s} {'eff/device':>10s} {'RSS MB':>14s}")
     for processes, devices in layouts:
-        compare = (processes, devices) == (1, max(d for p, d in layouts if p == 1)) and devices > 1
+        compare = (processes, devices) == (1, max((d for p, d in layouts if p == 1), default=0)) and devices > 1
         results = configuration(processes, devices, batch, steps, rounds, compare_routes=compare)
         first = results[0]
         row = dict(
@@ -166,7 +218,10 @@ def main(argv=None):
         )
     with open(out / "ensembles.json", "w") as f:
         json.dump(dict(machine=C.machine(), cores=os.cpu_count(), batch=batch, steps=steps, h=H, rounds=rounds, rows=rows), f, indent=1)
+    return out
 
 
 if __name__ == "__main__":
-    main()
+    out = main()
+    if out is not None:
+        print("\n\n".join(tables(out).values()))

@@ -40,8 +40,7 @@ splitting and `ReversibleGradient()` (a state kept every 1000 steps). Its
 stored steps would need 1024 × 10⁶ × 96 bytes ≈ 98 GB.
 
     python benchmarks/gradients.py
-    python benchmarks/gradients.py --quick   # tiny sizes, one process after the first case
-    python benchmarks/gradients.py --large-batch-only   # the batch-1024 rows again, into an earlier run's results
+    python benchmarks/gradients.py --quick   # tiny sizes, three of the cases, one process after the first
 """
 
 import json
@@ -49,6 +48,7 @@ import resource
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import diffrax
 import jax
@@ -155,23 +155,58 @@ def _in_child(path, batch, steps, rounds):
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+def gradients_table(results: Path) -> str:
+    """`gradients.py`: the gradient's temporary memory, the process's peak
+    memory, its time over the forward run's, and its compile time, against
+    the number of steps."""
+    data = C.results_file(results, "gradients.json")
+    rows = [
+        [
+            r["path"],
+            str(r["batch"]),
+            f"{r['steps']:.0e}".replace("e+0", "e"),
+            "–" if r["temp_bytes"] is None else f"{r['temp_bytes'] / 1e6:.2f}",
+            f"{r['peak_rss_mb']['compiled']:.0f}",
+            f"{r['peak_rss_mb']['forward']:.0f}",
+            f"{r['peak_rss_mb']['value_and_grad']:.0f}",
+            f"{r['ns_per_traj_step']['forward']:.0f}",
+            f"{r['ns_per_traj_step']['value_and_grad']:.0f}",
+            f"{r['gradient_over_forward']:.2f}",
+            f"{r['compile_s']['value_and_grad']:.1f}",
+            str(r["rounds"]),
+        ]
+        for r in data["rows"]
+    ]
+    headers = [
+        "path",
+        "batch",
+        "steps",
+        "temporary memory, MB",
+        "peak RSS compiled, MB",
+        "peak RSS forward, MB",
+        "peak RSS with gradient, MB",
+        "forward, ns",
+        "value and gradient, ns",
+        "gradient / forward",
+        "compile, s",
+        "rounds",
+    ]
+    return C.measured_on(data) + f" h = {data['h']}; ns per trajectory-step.\n\n" + C.table(headers, rows)
+
+
+def tables(results: Path) -> dict[str, str]:
+    """This script's tables, made from its results in `results` (`write_tables.py`)."""
+    return {"gradients": gradients_table(results)}
+
+
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["--case"]:
         jax.config.update("jax_enable_x64", True)
         print(json.dumps(measure(**json.loads(argv[1]))))
-        return
+        return None  # a worker: its parent writes the results
 
-    def extra(parser):
-        parser.add_argument(
-            "--large-batch-only",
-            action="store_true",
-            help="only the rows at batch 1024, put into the results file of an earlier run on this machine",
-        )
-
-    args, out = C.cli(__doc__, argv, extra)
-    if args.quick and args.large_batch_only:
-        raise SystemExit("--large-batch-only measures the full run's batch-1024 rows; it has no --quick form.")
+    args, out = C.cli(__doc__, argv)
     if args.quick:
         grid, batch, fit, large = ((20, 2),), 4, (8, 20), None
     else:
@@ -184,17 +219,14 @@ def main(argv=None):
     # The time criterion at a batch where the step's arithmetic, not the
     # number of kernels a step launches, sets the time (--quick: the same
     # code as the rows above).
-    large_batch_cases = [] if large is None else [(path, *large) for path in PATHS if path != "splitting, stored steps"]
-    cases += large_batch_cases
+    cases += [] if large is None else [(path, *large) for path in PATHS if path != "splitting, stored steps"]
     cases.append((FIT, fit[0], fit[1], 0))
-    if args.large_batch_only:
-        # Read before measuring: a file that the new rows cannot join stops the run at once.
-        earlier = C.earlier_results(out / "gradients.json")
-        cases = large_batch_cases
+    if args.quick:  # one integrate path, one diffeqsolve path and the fit: the script's code, each compiled once
+        cases = [c for c in cases if c[0] in ("integrate, ReversibleGradient", "diffeqsolve, ReversibleAdjoint", FIT)]
     for case_number, (path, b, steps, rounds) in enumerate(cases):
         start = time.perf_counter()
-        # --quick checks that every case runs: the first in a child as in a
-        # full run, the others in this process (their RSS is then not theirs alone).
+        # --quick: the first case in a child as in a full run, the others in
+        # this process (their RSS is then not theirs alone).
         row = measure(path, b, steps, rounds) if args.quick and case_number > 0 else _in_child(path, b, steps, rounds)
         rows.append(row)
         temp = "–" if row["temp_bytes"] is None else f"{row['temp_bytes'] / 1e6:.2f}"
@@ -204,17 +236,12 @@ def main(argv=None):
             f"{row['compile_s']['value_and_grad']:9.2f}   ({time.perf_counter() - start:.0f} s)",
             flush=True,
         )
-    if args.large_batch_only:
-        new = {(r["path"], r["batch"], r["steps"]) for r in rows}
-        kept = [r for r in earlier["rows"] if (r["path"], r["batch"], r["steps"]) not in new]
-        fit_at = next((k for k, r in enumerate(kept) if r["path"] == FIT), len(kept))
-        earlier["rows"] = kept[:fit_at] + rows + kept[fit_at:]
-        with open(out / "gradients.json", "w") as f:
-            json.dump(earlier, f, indent=1)
-        return
     with open(out / "gradients.json", "w") as f:
         json.dump(dict(machine=C.machine(), batch=batch, h=H, rows=rows), f, indent=1)
+    return out
 
 
 if __name__ == "__main__":
-    main()
+    out = main()
+    if out is not None:
+        print("\n\n".join(tables(out).values()))

@@ -14,12 +14,13 @@ embedding run through `diffeqsolve` with `SaveAt(ts=…)` (dense output).
 "At matched cost": for each PRKMK run, the smallest error any diffrax run
 reached in no more wall time, divided by the PRKMK run's error.
 
-    python benchmarks/long_time.py --out benchmarks/results
+    python benchmarks/long_time.py
     python benchmarks/long_time.py --quick
 """
 
 import csv
 import json
+from pathlib import Path
 
 import diffrax
 import jax.numpy as jnp
@@ -81,11 +82,7 @@ def _runs(quick, t_end):
     def body(tab):
         return C.SCENE.method(tab)
 
-    for name, tab in (
-        ("SE", pk.symplectic_euler),
-        ("SV", pk.stormer_verlet),
-        ("Lobatto4", pk.lobatto_iiia_iiib4),
-    ):
+    for name, tab in (("SE", pk.symplectic_euler), ("SV", pk.stormer_verlet), ("Lobatto4", pk.lobatto_iiia_iiib4)):
         if quick and name != "SV":
             continue
         runs += [(f"PRKMK {name} exp", "prkmk", "h", h, _prkmk_fixed(body(tab), t_end)) for h in fixed_h]
@@ -103,43 +100,14 @@ def _runs(quick, t_end):
     if not quick:
         solver = C.prkmk_solver(pk.lobatto_iiia_iiib4, adaptive=True)
         runs += [
-            (
-                "PRKMK Lobatto4 exp adaptive",
-                "prkmk",
-                "rtol",
-                r,
-                _dense(C.prkmk_final, solver, t_end, True),
-            )
-            for r in [1e-6, 1e-8, 1e-10]
+            ("PRKMK Lobatto4 exp adaptive", "prkmk", "rtol", r, _dense(C.prkmk_final, solver, t_end, True)) for r in [1e-6, 1e-8, 1e-10]
         ]
-    for name, solver in (
-        ("Tsit5", diffrax.Tsit5()),
-        ("Dopri5", diffrax.Dopri5()),
-        ("Dopri8", diffrax.Dopri8()),
-    ):
+    for name, solver in (("Tsit5", diffrax.Tsit5()), ("Dopri5", diffrax.Dopri5()), ("Dopri8", diffrax.Dopri8())):
         if quick and name != "Tsit5":
             continue
-        runs += [
-            (
-                f"diffrax {name} adaptive",
-                "diffrax",
-                "rtol",
-                r,
-                _dense(C.diffrax_final, solver, t_end, True),
-            )
-            for r in rtols
-        ]
+        runs += [(f"diffrax {name} adaptive", "diffrax", "rtol", r, _dense(C.diffrax_final, solver, t_end, True)) for r in rtols]
     if not quick:
-        runs += [
-            (
-                "diffrax Tsit5 fixed",
-                "diffrax",
-                "h",
-                h,
-                _dense(C.diffrax_final, diffrax.Tsit5(), t_end, False),
-            )
-            for h in fixed_h
-        ]
+        runs += [("diffrax Tsit5 fixed", "diffrax", "h", h, _dense(C.diffrax_final, diffrax.Tsit5(), t_end, False)) for h in fixed_h]
     return runs
 
 
@@ -184,6 +152,31 @@ def plot(rows, path, t_end):
     plt.close(fig)
 
 
+def long_time_table(results: Path) -> str:
+    """`long_time.py`: the invariants' largest drifts over T = 1000 and the
+    time each run took."""
+    data = C.results_file(results, "long_time.json")
+    rows = [
+        [
+            r["method"],
+            f"{r['kind']} = {r['parameter']:g}",
+            f"{r['wall_s']:.3f}",
+            C.number(r["energy"], ".1e"),
+            C.number(r["momentum_norm"], ".1e"),
+            C.number(r["spatial_momentum"], ".1e"),
+            C.number(r["orthogonality"], ".1e"),
+        ]
+        for r in data["rows"]
+    ]
+    headers = ["method", "setting", "s", "energy", "\\|Π\\|", "QΠ", "QᵀQ − I"]
+    return C.measured_on(data) + f" T = {data['t_end']:g}.\n\n" + C.table(headers, rows)
+
+
+def tables(results: Path) -> dict[str, str]:
+    """This script's tables, made from its results in `results` (`write_tables.py`)."""
+    return {"long_time": long_time_table(results)}
+
+
 def main(argv=None):
     args, out = C.cli(__doc__, argv)
     t_end = 20.0 if args.quick else 1000.0
@@ -200,21 +193,10 @@ def main(argv=None):
         except Exception as err:
             print(f"  {name} {kind}={param}: failed ({type(err).__name__})")
             wall, ok = float("nan"), False
-        row = dict(
-            method=name,
-            family=family,
-            kind=kind,
-            parameter=param,
-            wall_s=wall,
-            compile_s=compile_s,
-            ok=ok,
-        )
+        row = dict(method=name, family=family, kind=kind, parameter=param, wall_s=wall, compile_s=compile_s, ok=ok)
         row.update(drifts(q, pi) if ok else {k: float("nan") for k in KEYS})
         rows.append(row)
-        print(
-            f"{name:30s} {kind}={param:<7.0e} wall={wall:8.3f}s  " + "  ".join(f"{k}={row[k]:8.1e}" for k in KEYS),
-            flush=True,
-        )
+        print(f"{name:30s} {kind}={param:<7.0e} wall={wall:8.3f}s  " + "  ".join(f"{k}={row[k]:8.1e}" for k in KEYS), flush=True)
     plot(rows, out / "long_time.png", t_end)
     with open(out / "long_time.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
@@ -228,12 +210,9 @@ def main(argv=None):
             f" |Π| ×{m['momentum_norm_ratio']:.1e}  QΠ ×{m['spatial_momentum_ratio']:.1e}"
         )
     with open(out / "long_time.json", "w") as f:
-        json.dump(
-            dict(machine=C.machine(), t_end=t_end, rows=rows, matched_cost=matched),
-            f,
-            indent=1,
-        )
+        json.dump(dict(machine=C.machine(), t_end=t_end, rows=rows, matched_cost=matched), f, indent=1)
+    return out
 
 
 if __name__ == "__main__":
-    main()
+    print("\n\n".join(tables(main()).values()))

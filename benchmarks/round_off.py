@@ -38,15 +38,13 @@ Cost: the same methods, one trajectory and a batch of 64 in the state,
 both settings compiled and run interleaved: ns per trajectory-step,
 implicit iterations a step, and their ratios.
 
-    python benchmarks/round_off.py --out benchmarks/results
+    python benchmarks/round_off.py
     python benchmarks/round_off.py --quick
-    python benchmarks/round_off.py --rows "SV Cayley;SV exp, float32"   # these rows again, into an earlier run's results
-    python benchmarks/round_off.py --rows "SV exp, long"                # SV exp at round-off over --long-steps
-    python benchmarks/round_off.py --rows "Dopri8;cost"                 # the equal-cost row and the cost table
 """
 
 import json
 import time
+from pathlib import Path
 
 import diffrax
 import jax
@@ -289,19 +287,64 @@ def chart(rows, dopri, out):
     plt.close(fig)
 
 
+def round_off_table(results: Path) -> str:
+    """`round_off.py`'s results: how each invariant's error grows with the
+    number of steps (the largest error at the last step and the fitted
+    exponent), for the stages solved to round-off and stopped at the
+    tolerance, for the explicit splittings, and Dopri8 at equal cost."""
+    data = C.results_file(results, "round_off.json")
+
+    def growth(run):
+        def fit(name):
+            interval = run.get("exponent_interval", {}).get(name)
+            return f"{run['exponent'][name]:.2f}" + ("" if interval is None else f", {interval[0]:.2f}–{interval[1]:.2f}")
+
+        return ", ".join(f"{name} {run['errors'][name][-1]:.1e} ({fit(name)})" for name in run["errors"])
+
+    rows = [[r["method"], r["scene"], r["setting"], r["dtype"], str(r["batch"]), f"{r['steps']:.0e}", growth(r)] for r in data["growth"]]
+    d = data["dopri8"]
+    batch, horizon = d.get("batch", data["growth"][0]["batch"]), f"same time as SV's {d['steps_of_sv']:.0e}"
+    rows.append([f"Dopri8 at SV's cost (h = {d['dt']:.3f})", "free body", "explicit", "float64", str(batch), horizon, growth(d)])
+    last = "largest error at the last step (growth exponent, its 90% interval)"
+    headers = ["method", "scene", "stages", "dtype", "trajectories", "steps", last]
+    return C.table(headers, rows)
+
+
+def round_off_cost_table(results: Path) -> str:
+    """`round_off.py`'s cost rows: ns per trajectory-step and iterations a
+    step with the stages solved to round-off and stopped at the tolerance,
+    interleaved."""
+    data = C.results_file(results, "round_off.json")
+    device = C.device_name(data["machine"])
+    rows = []
+    for r in data["cost"]:
+        ns, it = r["ns_per_traj_step"], r["iterations_per_step"]
+        rows.append(
+            [
+                r["method"],
+                str(r["batch"]),
+                device,
+                f"{ns['round-off']:.0f}",
+                f"{ns['tolerance']:.0f}",
+                f"{r['round_off_over_tolerance']:.2f}",
+                f"{it['round-off']:.1f}",
+                f"{it['tolerance']:.1f}",
+            ]
+        )
+    headers = ["method", "trajectories", "device", "round-off, ns", "tolerance, ns", "round-off / tolerance"]
+    return C.table([*headers, "iterations a step, round-off", "tolerance"], rows)
+
+
+def tables(results: Path) -> dict[str, str]:
+    """This script's tables, made from its results in `results` (`write_tables.py`)."""
+    return {"round_off": round_off_table(results), "round_off_cost": round_off_cost_table(results)}
+
+
 def main(argv=None):
     def extra(parser):
         parser.add_argument("--max-steps", type=float, default=1e6, help="steps of the growth runs (default 1e6)")
         parser.add_argument("--long-steps", type=float, default=1e7, help="steps of the longest run, SV exp at round-off (default 1e7)")
         parser.add_argument("--batch", type=int, default=64, help="trajectories of each growth run (default 64)")
-        parser.add_argument(
-            "--rows",
-            default="",
-            help="';'-separated growth rows to run again (e.g. 'SV Cayley;SV exp, float32;splitting (Strang)'), "
-            "the implicit ones in both settings ('SV exp, long': its round-off run over --long-steps; 'Dopri8': "
-            "the equal-cost row; 'cost': the cost table), put into the results file of an earlier run on this "
-            "machine; the chart is drawn again",
-        )
 
     args, out = C.cli(__doc__, argv, extra)
     quick = args.quick
@@ -353,39 +396,6 @@ def main(argv=None):
                 )
         return rows
 
-    if args.rows:
-        earlier = C.earlier_results(out / "round_off.json")
-        rows = earlier["growth"]
-        # A record written before the Dopri8 row carried its batch: the full run's, its first row's.
-        earlier["dopri8"].setdefault("batch", rows[0]["batch"])
-        for label in args.rows.split(";"):
-            if label == "Dopri8":
-                earlier["dopri8"] = dopri8_row(max_steps)
-                continue
-            if label == "cost":
-                earlier["cost"] = cost_rows()
-                continue
-            long = label == "SV exp, long"
-            name, _, dtype_name = ("SV exp", "", "") if long else label.partition(", float")
-            if name not in SPLITTINGS and name not in methods("round-off"):
-                names = sorted([*methods("round-off"), *SPLITTINGS])
-                raise SystemExit(
-                    f"no growth row {label!r}: the rows are {names} (', float32' or ', long' after SV exp), 'Dopri8' and 'cost'."
-                )
-            settings = ("explicit",) if name in SPLITTINGS else ("round-off",) if long else SETTINGS
-            for setting in settings:
-                row = growth_of(name, setting, jnp.float32 if dtype_name else jnp.float64, steps=long_steps if long else max_steps)
-                key = (name, setting, row["dtype"], row["steps"])
-                same = [k for k, r in enumerate(rows) if (r["method"], r["setting"], r["dtype"], r["steps"]) == key]
-                if same:
-                    rows[same[0]] = row
-                else:  # after the rows of the same method and dtype
-                    kin = [k for k, r in enumerate(rows) if (r["method"], r["dtype"]) == (name, row["dtype"])]
-                    rows.insert(kin[-1] + 1 if kin else len(rows), row)
-        with open(out / "round_off.json", "w") as f:
-            json.dump(earlier, f, indent=1)
-        chart(rows, earlier["dopri8"], out)
-        return
     by_setting = {setting: methods(setting) for setting in SETTINGS}
     growth_rows = []
     print(f"{'method':28s} {'setting':10s} {'steps':>9s} {'s':>7s}  invariant: median max error (exponent, its 90% interval)")
@@ -403,7 +413,8 @@ def main(argv=None):
     chart(growth_rows, dopri, out)
     with open(out / "round_off.json", "w") as f:
         json.dump(dict(machine=C.machine(), h=STEP, growth=growth_rows, dopri8=dopri, cost=cost_rows()), f, indent=1)
+    return out
 
 
 if __name__ == "__main__":
-    main()
+    print("\n\n".join(tables(main()).values()))

@@ -17,12 +17,13 @@ Störmer–Verlet also Newton, which separates divergence of the implicit stage
 from instability of the method. Peers: diffrax Tsit5, Dopri5, Dopri8 with
 constant steps on the embedding ℝ⁹×ℝ³.
 
-    python benchmarks/stability.py --out benchmarks/results
+    python benchmarks/stability.py
     python benchmarks/stability.py --quick
 """
 
 import csv
 import json
+from pathlib import Path
 
 import diffrax
 import jax
@@ -44,11 +45,7 @@ def _prkmk(tableau, root_finder=None, coordinates=pk.Exp()):
         def run(q0, pi0, inertia):
             y0 = pk.BundleElement(pk.SO3(q0), pi0)
             traj = pk.integrate(method, C.SCENE, y0, 0.0, H, n, inertia, save_every=every, throw=False)
-            return (
-                traj.ys.base.matrix,
-                traj.ys.fiber,
-                traj.result == pk.RESULTS.successful,
-            )
+            return (traj.ys.base.matrix, traj.ys.fiber, traj.result == pk.RESULTS.successful)
 
         return run
 
@@ -74,11 +71,7 @@ def _peer(solver):
                 throw=False,
             )
             z = sol.ys
-            return (
-                z[:, :9].reshape(-1, 3, 3),
-                z[:, 9:],
-                sol.result == diffrax.RESULTS.successful,
-            )
+            return (z[:, :9].reshape(-1, 3, 3), z[:, 9:], sol.result == diffrax.RESULTS.successful)
 
         return run
 
@@ -95,6 +88,24 @@ METHODS = {
     "diffrax Dopri5": _peer(diffrax.Dopri5()),
     "diffrax Dopri8": _peer(diffrax.Dopri8()),
 }
+
+
+def stability_table(results: Path) -> str:
+    """`stability.py`: the largest h·|Ω₀| each method stays stable to, and
+    the first failure beyond it."""
+    data = C.results_file(results, "stability.json")
+    rows = []
+    for r in data["thresholds"]:
+        bounded_throughout = C.number(r["first_failure"], "g") == "–"
+        threshold = f"≥ {r['threshold']:.3g} (the grid's top)" if bounded_throughout else f"{r['threshold']:.3g}"
+        rows.append([r["scene"], r["method"], threshold, C.number(r["first_failure"], ".3g"), r["reason"]])
+    headers = ["scene", "method", "stable to h·\\|Ω₀\\|", "first failure", "why"]
+    return C.measured_on(data) + f" T = {data['t_end']:g}.\n\n" + C.table(headers, rows)
+
+
+def tables(results: Path) -> dict[str, str]:
+    """This script's tables, made from its results in `results` (`write_tables.py`)."""
+    return {"stability": stability_table(results)}
 
 
 def main(argv=None):
@@ -126,15 +137,7 @@ def main(argv=None):
                 compile_s=compile_s,
             )
             for hw, s, st in zip(hw_targets, scales, status):
-                rows.append(
-                    dict(
-                        scene=scene,
-                        method=name,
-                        h_omega=hw,
-                        momentum_scale=s,
-                        status=st,
-                    )
-                )
+                rows.append(dict(scene=scene, method=name, h_omega=hw, momentum_scale=s, status=st))
             print(
                 f"{scene:16s} {name:20s} stable to h|Ω₀| = {thresholds[(scene, name)]['threshold']:6.3f}; "
                 f"first failure at {thresholds[(scene, name)]['first_failure']:6.3f} ({thresholds[(scene, name)]['reason']})",
@@ -146,16 +149,12 @@ def main(argv=None):
         writer.writerows(rows)
     with open(out / "stability.json", "w") as f:
         json.dump(
-            dict(
-                machine=C.machine(),
-                h=H,
-                t_end=t_end,
-                thresholds=[dict(scene=s, method=m, **v) for (s, m), v in thresholds.items()],
-            ),
+            dict(machine=C.machine(), h=H, t_end=t_end, thresholds=[dict(scene=s, method=m, **v) for (s, m), v in thresholds.items()]),
             f,
             indent=1,
         )
     plot(thresholds, hw_targets, out / "stability.png", t_end)
+    return out
 
 
 def plot(thresholds, grid, path, t_end):
@@ -184,4 +183,4 @@ def plot(thresholds, grid, path, t_end):
 
 
 if __name__ == "__main__":
-    main()
+    print("\n\n".join(tables(main()).values()))

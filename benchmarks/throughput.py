@@ -1,4 +1,4 @@
-"""Throughput, compile time and gradient cost.
+"""Throughput and compile time (the gradients' cost: `gradients.py`).
 
 1. Trajectory-steps per second against batch size, free rigid body, h = 0.01:
    PRKMK Störmer–Verlet (T*SO(3), body form, exp) through `lax.scan`
@@ -10,19 +10,15 @@
    iterations per step.
 2. Compile time (lower + compile of a fresh jit) against the number of
    stages: symplectic Euler (1), Störmer–Verlet (2), Lobatto IIIA–IIIB (3).
-3. Forward against forward + backward: `jax.grad` of a loss of the final
-   momenta with respect to the inertia, batch 64, 200 steps, through the
-   scan integrator and through diffeqsolve (RecursiveCheckpointAdjoint);
-   forward and gradient alternate, 9 rounds, and the ratio is the median
-   of the per-round ratios.
 
-    python benchmarks/throughput.py --out benchmarks/results
+    python benchmarks/throughput.py
     python benchmarks/throughput.py --quick
 """
 
 import functools
 import json
 import statistics
+from pathlib import Path
 
 import diffrax
 import jax
@@ -44,20 +40,10 @@ def _scan(method, steps):
     return run
 
 
-def _diffeqsolve(method, steps, adjoint=None):
+def _diffeqsolve(method, steps):
     def run(q0, pi0, inertia):
         y0 = pk.BundleElement(pk.SO3(q0), pi0)
-        sol = diffrax.diffeqsolve(
-            pk.PRKMKTerm(C.SCENE),
-            pk.PRKMKSolver(method),
-            0.0,
-            steps * H,
-            H,
-            y0,
-            inertia,
-            max_steps=steps,
-            adjoint=diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
-        )
+        sol = diffrax.diffeqsolve(pk.PRKMKTerm(C.SCENE), pk.PRKMKSolver(method), 0.0, steps * H, H, y0, inertia, max_steps=steps)
         return sol.ys.fiber[-1], jnp.nan
 
     return run
@@ -66,16 +52,7 @@ def _diffeqsolve(method, steps, adjoint=None):
 def _tsit5(steps):
     def run(q0, pi0, inertia):
         z0 = jnp.concatenate([q0.reshape(9), pi0])
-        sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(C.embedding_rhs),
-            diffrax.Tsit5(),
-            0.0,
-            steps * H,
-            H,
-            z0,
-            inertia,
-            max_steps=steps,
-        )
+        sol = diffrax.diffeqsolve(diffrax.ODETerm(C.embedding_rhs), diffrax.Tsit5(), 0.0, steps * H, H, z0, inertia, max_steps=steps)
         return sol.ys[-1, 9:], jnp.nan
 
     return run
@@ -140,69 +117,38 @@ def compile_vs_stages(quick):
         for path, make in (("scan", _scan), ("diffeqsolve", _diffeqsolve)):
             _, compile_s = C.compile_fn(jax.vmap(make(method, 50), in_axes=(0, 0, None)), *args)
             rows.append(dict(tableau=name, stages=tab.num_stages, path=path, compile_s=compile_s))
-            print(
-                f"{name:9s} stages={tab.num_stages}  {path:12s} compile {compile_s:5.2f}s",
-                flush=True,
-            )
+            print(f"{name:9s} stages={tab.num_stages}  {path:12s} compile {compile_s:5.2f}s", flush=True)
     return rows
 
 
-def gradient_cost(quick, rounds):
-    batch, steps = (8, 20) if quick else (64, 200)
-    method = C.SCENE.method(pk.stormer_verlet)
-    qs, pis = C.initial_conditions(batch, seed=4)
-    qs, pis = jnp.asarray(qs), jnp.asarray(pis)
-    target = jnp.asarray(C.MOMENTUM)
-    rows = []
-    # diffrax's default adjoint keeps O(√steps) checkpoints and recomputes
-    # steps in the backward pass; with one checkpoint per step it recomputes
-    # each step once, as `integrate` does.
-    paths = (
-        ("scan", _scan(method, steps)),
-        ("diffeqsolve", _diffeqsolve(method, steps)),
-        ("diffeqsolve-ckpt", _diffeqsolve(method, steps, diffrax.RecursiveCheckpointAdjoint(checkpoints=steps))),
-    )
-    for path, one in paths:
-        run = jax.vmap(one, in_axes=(0, 0, None))
+def throughput_table(results: Path) -> str:
+    """`throughput.py`: trajectory-steps per second against the batch, compile
+    time against the number of stages."""
+    data = C.results_file(results, "throughput.json")
+    rows = [
+        [
+            str(r["batch"]),
+            r["method"],
+            f"{r['traj_steps_per_s']:.3g}",
+            C.number(r["iterations_per_step"], ".1f"),
+            C.number(r["over_tsit5"], ".2f"),
+            f"{r['compile_s']:.2f}",
+        ]
+        for r in data["throughput"]
+    ]
+    rates = C.table(["batch", "method", "trajectory-steps/s", "iterations a step", "time / Tsit5", "compile, s"], rows)
+    rows = [[r["tableau"], str(r["stages"]), r["path"], f"{r['compile_s']:.2f}"] for r in data["compile_vs_stages"]]
+    compile_times = C.table(["tableau", "stages", "path", "compile, s"], rows)
+    return C.measured_on(data) + "\n\n" + rates + "\n\n" + compile_times
 
-        def loss(inertia, run=run):
-            return jnp.mean(jnp.sum((run(qs, pis, inertia)[0] - target) ** 2, axis=-1))
 
-        inertia = jnp.asarray(C.INERTIA)
-        fwd, fwd_c = C.compile_fn(loss, inertia)
-        bwd, bwd_c = C.compile_fn(jax.value_and_grad(loss), inertia)
-        # Forward and gradient alternate, and the ratio is the median of the
-        # per-round ratios, so that a slow spell of the machine hits both.
-        for fn in (fwd, bwd):
-            jax.block_until_ready(fn(inertia))
-        times = C.interleaved_times({"forward": fwd, "gradient": bwd}, inertia, rounds=rounds)
-        fwd_t, bwd_t = statistics.median(times["forward"]), statistics.median(times["gradient"])
-        ratio = C.median_ratio(times, "gradient", "forward")
-        rows.append(
-            dict(
-                path=path,
-                batch=batch,
-                steps=steps,
-                forward_s=fwd_t,
-                forward_backward_s=bwd_t,
-                ratio=ratio,
-                forward_compile_s=fwd_c,
-                gradient_compile_s=bwd_c,
-            )
-        )
-        print(
-            f"{path:16s} forward {fwd_t:8.4f}s  forward+backward {bwd_t:8.4f}s  ratio {ratio:5.2f}  compile {fwd_c:5.2f}s / {bwd_c:5.2f}s",
-            flush=True,
-        )
-    return rows
+def tables(results: Path) -> dict[str, str]:
+    """This script's tables, made from its results in `results` (`write_tables.py`)."""
+    return {"throughput": throughput_table(results)}
 
 
 def main(argv=None):
-    args, out = C.cli(
-        __doc__,
-        argv,
-        lambda p: p.add_argument("--parts", default="throughput,compile,gradient"),
-    )
+    args, out = C.cli(__doc__, argv, lambda p: p.add_argument("--parts", default="throughput,compile"))
     rounds = 1 if args.quick else 7
     result = dict(machine=C.machine())
     parts = args.parts.split(",")
@@ -210,12 +156,11 @@ def main(argv=None):
         result["throughput"] = throughput(args.quick, rounds)
     if "compile" in parts:
         result["compile_vs_stages"] = compile_vs_stages(args.quick)
-    if "gradient" in parts:
-        result["gradient"] = gradient_cost(args.quick, 2 if args.quick else 9)
     with open(out / "throughput.json", "w") as f:
         json.dump(result, f, indent=1)
     if "throughput" in result:
         plot(result["throughput"], out / "throughput.png")
+    return out
 
 
 def plot(rows, path):
@@ -227,12 +172,7 @@ def plot(rows, path):
     fig, ax = plt.subplots(figsize=(8, 5))
     for name in dict.fromkeys(r["method"] for r in rows):
         pts = [r for r in rows if r["method"] == name]
-        ax.loglog(
-            [p["batch"] for p in pts],
-            [p["traj_steps_per_s"] for p in pts],
-            "-o",
-            label=name,
-        )
+        ax.loglog([p["batch"] for p in pts], [p["traj_steps_per_s"] for p in pts], "-o", label=name)
     ax.axhline(3e7, color="k", ls=":", label="target 3·10⁷ (batch ≥ 10⁴)")
     ax.set_xlabel("batch size (trajectories)")
     ax.set_ylabel("trajectory-steps per second")
@@ -245,4 +185,4 @@ def plot(rows, path):
 
 
 if __name__ == "__main__":
-    main()
+    print("\n\n".join(tables(main()).values()))

@@ -187,8 +187,7 @@ class AbstractBundle(eqx.Module):
         skips the fiber part of f(u, 0), which is zero but would cost its
         arithmetic: XLA does not fold 0·x for floats. On G ⋉ 𝔤 that part is
         ψ_{∓u} v (`AbstractCoordinates.fiber_map`); skipping it makes the free
-        body's step on T*SO(3) quicker (`benchmarks/against_revision.py`
-        measures it)."""
+        body's step on T*SO(3) quicker."""
 
     @abc.abstractmethod
     def apply_change(

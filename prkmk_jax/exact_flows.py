@@ -236,8 +236,7 @@ class InertiaOrderedFrame(eqx.Module):
     of the virtual axes (0 outermost, 2 in the middle with the full step): the
     axis of smallest inertia (fastest rotation) outermost and the axis of
     largest inertia in the middle gave the smallest error of the six orders
-    on the free body and the heavy top (`benchmarks/splitting.py` records the
-    comparison). Moments that vary over a batch give each trajectory its own σ.
+    on the free body and the heavy top (`docs/design-notes.md`). Moments that vary over a batch give each trajectory its own σ.
     An odd σ makes the virtual frame left-handed: a rotation there turns
     the other way (`parity`), and a cross product changes sign."""
 

@@ -123,7 +123,7 @@ class PRKMKSolver(diffrax.AbstractSolver):
     its stages iterate until every trajectory has converged, and its result
     is one value for the batch, so one trajectory's failed stage fails the
     solve. For fixed steps that route costs about what `integrate` does
-    (`benchmarks/floor.py`). With an optimistix root finder that forms a
+    (`docs/design-notes.md`). With an optimistix root finder that forms a
     Jacobian (`root_finder=optx.Newton(...)`), the Jacobian would then span
     the whole batch: keep `vmap` there.
     """

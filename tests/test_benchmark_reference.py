@@ -52,17 +52,6 @@ def test_both_elliptic_branches_are_exercised():
     assert sides == {True, False}
 
 
-def test_geodesic_distance():
-    import jax.numpy as jnp
-
-    from prkmk_jax import SO3
-
-    q = np.asarray(SO3.exp(jnp.array([0.3, -0.2, 0.1])).matrix)
-    for angle in (1e-9, 1e-4, 0.5, 3.0):
-        r = np.asarray(SO3.exp(jnp.array([angle, 0.0, 0.0])).matrix)
-        assert abs(_common.geodesic_distance(q @ r, q) - angle) < 1e-12 * max(1, angle) + 1e-15
-
-
 def test_growth_exponent_interval_brackets_a_random_walk_and_a_drift():
     """`round_off.py`'s bootstrap interval of the growth exponent: for running
     maxima of random walks it holds 0.5 and not 1, for a steady drift with

@@ -273,8 +273,7 @@ def _assert_documented_table_is_this_run(records):
 @pytest.mark.end_to_end
 def test_reproduce_command(tmp_path, capsys):
     # The README's job as it is, at the paper's time scale. --no-cache: the
-    # process keeps the test run's compilation cache (conftest.py) instead of
-    # writing to ~/.cache. The integrations the module's fixture ran are not
+    # test writes nothing to ~/.cache. The integrations the module's fixture ran are not
     # compiled again (`rp.execute` keeps one jitted integration per run).
     rp.main(["--out", str(tmp_path), "--jobs", "1", "--no-cache"])
     for i in range(1, 5):

@@ -61,7 +61,7 @@ def _rotation_terms(u, x):
     The actions exp(û)x and dexp_u v use this form, not (u·x)u − θ²x: a dot
     product is a reduction over the length-3 axis, which XLA's CPU backend
     runs as separate kernels at large batches, and the step on T*SO(3) is
-    markedly faster this way (`benchmarks/floor.py` measures it). dexp⁻¹
+    markedly faster this way. dexp⁻¹
     keeps the dot form: there two cross products measured slower.
 
     The derivative is that of the dot form (`_cross_twice`): the transpose
@@ -106,8 +106,7 @@ def _rotation_coefficients(t2):
     computed together behind one optimisation barrier (`computed_once`).
     Without it XLA fuses the sines, and the cosines of their derivatives,
     into every kernel of a step's VJP that reads them, and evaluates them
-    again for each component of the vectors there
-    (`benchmarks/against_revision.py --gradients` measures the VJPs)."""
+    again for each component of the vectors there."""
     return _rotation_coefficients_of(t2)
 
 
@@ -126,7 +125,7 @@ def _rotation_coefficients_of(t2):
     Two sines rather than one sine and cosine of θ/2: XLA's CPU fusion
     recomputes a cosine in every fusion that consumes it (it treats it as
     cheap) but materialises a sine once; with the cosine, a Lobatto 4 step
-    on T*SO(3) ran markedly slower (benchmarks/floor.py). Both share one
+    on T*SO(3) ran markedly slower. Both share one
     square root and one double `where` here instead of two `taylor_or_exact`
     calls, which written separately also measured slower.
     """

@@ -2,9 +2,8 @@
 
 XLA's CPU backend evaluates `jnp.sin` and `jnp.cos` of float64 element by
 element through a library call; an exact-flow splitting step is a chain of
-planar rotations whose cost is almost all sines and cosines
-(`benchmarks/splitting.py` measures the difference). `sincos` computes both
-from one reduction of the angle to [−π/4, π/4] (Cody–Waite: π/2 split into
+planar rotations whose cost is almost all sines and cosines. `sincos`
+computes both from one reduction of the angle to [−π/4, π/4] (Cody–Waite: π/2 split into
 parts whose products with the quadrant count are exact) and Taylor
 polynomials there, with as many terms as the dtype needs; the quadrant then
 picks signs and swaps. Accurate to a few units in the last place for

@@ -25,11 +25,11 @@ For each method a sweep of step counts gives the error at T (max over the
 state's entries and the first 32 trajectories, against SciPy DOP853 at
 rtol = atol = 1e-13); at each target the smallest step count that reaches
 it is timed, all methods interleaved (median of the rounds, compile
-excluded). Writes splitting.json and splitting.md (the table) to --out.
+excluded). Writes accuracy.json and accuracy.png to --out.
 
-    python benchmarks/splitting.py --out benchmarks/results
-    python benchmarks/splitting.py --quick
-    python benchmarks/splitting.py --short --regimes 1024,16384 --name splitting_gpu   # on a GPU
+    python benchmarks/accuracy.py
+    python benchmarks/accuracy.py --quick
+    python benchmarks/accuracy.py --short --regimes 1024,16384 --name accuracy_gpu   # on a GPU
 """
 
 import concurrent.futures
@@ -38,12 +38,12 @@ import json
 import os
 import statistics
 import time
+from pathlib import Path
 
 import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
-import write_tables
 
 import _common as C
 import prkmk_jax as pk
@@ -341,86 +341,155 @@ def plot(rows, path, targets):
     plt.close(fig)
 
 
-def arrangements(quick):
-    """Error at T = 10 of the order-2 and order-8 splittings of the heavy top
-    and the free body for each order of the axis terms and placement of the
-    gravity kick (single trajectory, the scene's parts reordered): the
-    comparison behind the scenes' choice."""
-    import itertools
-
-    rows = []
-    q0, p0 = C.initial_conditions(None, seed=1)
-    for scene_name in ("free body",) if quick else SCENES:
-        scene, args = SCENES[scene_name]
-        momentum = np.asarray(p0) * (np.array([1.0, -1.0, 2.0]) if scene_name == "heavy top" else 1.0)
-        y0 = pk.BundleElement(pk.SO3(jnp.asarray(q0)), jnp.asarray(momentum))
-        reference = _reference(scene_name, np.concatenate([np.asarray(q0).reshape(1, 9), momentum.reshape(1, 3)], axis=-1))[0]
-        parts = scene.exact_flows(args)
-        kick, rotations = (parts[:1], parts[1:]) if scene_name == "heavy top" else ((), parts)
-        orders = list(itertools.permutations(range(3)))[: 2 if quick else 6]
-        for order in orders:
-            for placement in ("outer", "middle") if kick else ("none",):
-                turned = tuple(rotations[a] for a in order)
-                arranged = kick + turned if placement != "middle" else turned + kick
-                reordered = _Reordered(scene, arranged)
-                for coefficients, n in ((None, 800), (pk.kahan_li_8, 48)):
-                    method = pk.Splitting(reordered, coefficients)
-                    y = pk.integrate(method, reordered, y0, 0.0, T_END / n, n, args, save_every=n).ys
-                    z = np.asarray(scene.to_embedding(jax.tree.map(lambda a: a[-1], y)))
-                    rows.append(
-                        dict(
-                            scene=scene_name,
-                            axes_outermost_first=[int(a) for a in order],
-                            kick=placement,
-                            order=method.order,
-                            steps=n,
-                            error=float(np.max(np.abs(z - reference))),
-                        )
-                    )
-                    error = rows[-1]["error"]
-                    print(f"{scene_name:9s} axes by inertia {order} kick {placement:6s} order {method.order}: error {error:.1e}")
-    return rows
+RESULTS_FILES = ("accuracy", "accuracy_16384", "accuracy_gpu_float64", "accuracy_gpu_float32")
+"""The committed runs, in the order the tables list them (`--name` of each)."""
+FLOOR = "floor order 8 (hand-written)"
+FAMILIES = (("splittings", "splitting"), ("PRKMK", "PRKMK"))
+"""The library's families: name, and the prefix of their methods in the results."""
+DIFFRAX = ("Dopri8 fixed", "Tsit5 fixed", "Dopri8 PID", "Tsit5 PID")
 
 
-class _Reordered(pk.exact_flows.AbstractSplitScene):
-    """A scene with its parts in another order (for `arrangements`)."""
+def is_library(method: str) -> bool:
+    return method.startswith(("splitting", "PRKMK"))
 
-    scene: pk.exact_flows.AbstractSplitScene
-    parts: tuple
 
-    @property
-    def rotation_rows(self):  # pyright: ignore[reportIncompatibleVariableOverride]
-        return self.scene.rotation_rows
+def is_symplectic(method: str) -> bool:
+    """The library's symplectic runs: the splittings and the Lobatto
+    IIIA–IIIB pairs (the explicit RKMK tableaus keep the group, not the
+    symplectic form)."""
+    return method.startswith("splitting") or method.startswith("PRKMK Lobatto")
 
-    @property
-    def bundle(self):
-        return self.scene.bundle
 
-    @property
-    def form(self):
-        return self.scene.form
+def entries_of(data: dict, source: str) -> list[dict]:
+    """The timed rows of one results file : one entry
+    per scene, batch, dtype and target, holding each method's fastest run
+    that reached the target (method: (steps, seconds)) and which of the
+    library's families the run swept (`families`)."""
+    device = C.device_name(data["machine"])
+    entries = []
+    keys = dict.fromkeys((r["scene"], r["regime"], r.get("dtype", "float64")) for r in data["rows"])
+    for scene, regime, dtype in keys:
+        swept = {r["method"] for r in data["rows"] if (r["scene"], r["regime"], r.get("dtype", "float64")) == (scene, regime, dtype)}
+        families = " and ".join(name for name, prefix in FAMILIES if any(m.startswith(prefix) for m in swept))
+        for target in data.get("targets", (1e-6, 1e-8, 1e-10)):
+            label = f"{target:.0e}"
+            runs = {}
+            for r in data["rows"]:
+                timed = r.get("wall_s_at_target", {})
+                if (r["scene"], r["regime"], r.get("dtype", "float64")) == (scene, regime, dtype) and label in timed:
+                    runs[r["method"]] = (r["steps"], timed[label], r.get("rtol"))
+            entries.append(
+                dict(source=source, scene=scene, regime=regime, dtype=dtype, device=device, target=target, runs=runs, families=families)
+            )
+    return entries
 
-    def checked_args(self, args):
-        return self.scene.checked_args(args)
 
-    def __call__(self, t, y, args):
-        return self.scene(t, y, args)  # type: ignore[operator]
+def load(results: Path) -> list[dict]:
+    """`entries_of` every results file of `RESULTS_FILES` in the folder `results`."""
+    paths = [results / f"{name}.json" for name in RESULTS_FILES]
+    return [e for path in paths if path.exists() for e in entries_of(json.loads(path.read_text()), path.stem)]
 
-    def exact_flows(self, args):
-        return self.parts
 
-    def pack(self, y, args):
-        return self.scene.pack(y, args)
+def _batch(regime: str) -> str:
+    return "1" if regime == "single" else regime
 
-    def unpack(self, z, like, args):
-        return self.scene.unpack(z, like, args)
+
+def _fastest(runs: dict, keep) -> tuple[str, int, float] | None:
+    found = [(m, n, s, rtol) for m, (n, s, rtol) in runs.items() if keep(m)]
+    return min(found, key=lambda e: e[2]) if found else None
+
+
+def _cell(entry) -> str:
+    if entry is None:
+        return "not reached | –"
+    method, steps, seconds, rtol = entry
+    setting = f"n = {steps}" if rtol is None else f"rtol = {rtol:.0e}, {steps} steps"
+    return f"{method} ({setting}) | {seconds * 1e3:.2f}"
+
+
+def _ratio(library, diffrax) -> str:
+    if library is None:
+        return "library not reached" if diffrax is not None else "not reached"
+    if diffrax is None:
+        return "diffrax not reached"
+    return f"{library[2] / diffrax[2]:.2f}" + (" **(slower)**" if library[2] > diffrax[2] else "")
+
+
+def accuracy_table(entries: list[dict]) -> str:
+    lines = [
+        "| scene | batch | device | dtype | library runs | target | library's fastest | ms | diffrax's fastest | ms | library / diffrax "
+        "| order-8 splitting / hand-written, per step |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for e in entries:
+        library, diffrax = _fastest(e["runs"], is_library), _fastest(e["runs"], lambda m: m in DIFFRAX)
+        ratio = "–" if library is None or diffrax is None else f"{library[2] / diffrax[2]:.2f}"
+        own, floor = e["runs"].get("splitting order 8"), e["runs"].get(FLOOR)
+        per_step = "–" if own is None or floor is None else f"{(own[1] / own[0]) / (floor[1] / floor[0]):.2f}"
+        lines.append(
+            f"| {e['scene']} | {_batch(e['regime'])} | {e['device']} | {e['dtype']} | {e['families']} | {e['target']:.0e} "
+            f"| {_cell(library)} | {_cell(diffrax)} | {ratio} | {per_step} |"
+        )
+    return "\n".join(lines)
+
+
+def decision_table(entries: list[dict]) -> str:
+    lines = [
+        "| scene | batch | device, dtype | library runs | target | pick | ms | runner-up | ms | fastest symplectic | ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for e in entries:
+        ranked = sorted(((m, n, s, rtol) for m, (n, s, rtol) in e["runs"].items() if m != FLOOR), key=lambda r: r[2])
+        first = _cell(ranked[0]) if ranked else "none of the runs reached it | –"
+        second = _cell(ranked[1]) if len(ranked) > 1 else "– | –"
+        symplectic = _fastest(e["runs"], is_symplectic)
+        where = f"{e['scene']} | {_batch(e['regime'])} | {e['device']}, {e['dtype']} | {e['families']}"
+        lines.append(f"| {where} | {e['target']:.0e} | {first} | {second} | {_cell(symplectic)} |")
+    return "\n".join(lines)
+
+
+def summary_table(entries: list[dict]) -> str:
+    groups = dict.fromkeys((e["scene"], e["regime"], e["device"], e["dtype"], e["families"]) for e in entries)
+    lines = [
+        "| scene | batch | device, dtype | library runs | library's fastest | library / diffrax's fastest, at each target "
+        "| library's fastest symplectic | symplectic / diffrax's fastest |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for key in groups:
+        columns = {is_library: ([], []), is_symplectic: ([], [])}
+        for e in (e for e in entries if (e["scene"], e["regime"], e["device"], e["dtype"], e["families"]) == key):
+            diffrax = _fastest(e["runs"], lambda m: m in DIFFRAX)
+            for keep, (cells, names) in columns.items():
+                library = _fastest(e["runs"], keep)
+                if library is not None and library[0] not in names:
+                    names.append(library[0])
+                cells.append(f"{e['target']:.0e}: {_ratio(library, diffrax)}")
+        scene, regime, device, dtype, families = key
+        row = f"| {scene} | {_batch(regime)} | {device}, {dtype} | {families} |"
+        for cells, names in columns.values():
+            row += f" {', '.join(names) or '–'} | {'; '.join(cells)} |"
+        lines.append(row)
+    return "\n".join(lines)
+
+
+def tables(results: Path) -> dict[str, str]:
+    """This script's tables, made from its results in `results` (`write_tables.py`):
+    `accuracy`, for each scene, batch, device, dtype and error target, the
+    fastest run of the library against diffrax's fastest and the order-8
+    splitting per step over the hand-written kernel; `decision`, the same
+    rows with the run to pick, the runner-up and the fastest symplectic run
+    (the hand-written kernel left out: it is not something a user calls);
+    `summary`, one row per scene, batch, device and dtype, the library's
+    time over diffrax's at each target."""
+    entries = load(results)
+    return {"accuracy": accuracy_table(entries), "decision": decision_table(entries), "summary": summary_table(entries)}
 
 
 def _arguments(parser):
     parser.add_argument("--regimes", default="single,1024", help="comma-separated: single, or a batch size")
     parser.add_argument("--short", action="store_true", help="the order-8 splittings and Dopri8 only, near the targets (device runs)")
     parser.add_argument("--float32", action="store_true", help="states and parameters in float32")
-    parser.add_argument("--name", default="splitting", help="stem of the results files")
+    parser.add_argument("--name", default="accuracy", help="stem of the results files")
     parser.add_argument("--without", default="", help="comma-separated methods to leave out (e.g. 'Tsit5 fixed')")
     parser.add_argument("--methods", default="", help="comma-separated methods to run (default: all of the sweep)")
     parser.add_argument("--parallel-compile", action="store_true", help="compile each sweep on threads (compile times not recorded)")
@@ -434,9 +503,9 @@ def main(argv=None):
     rows = []
     targets = TARGETS if dtype == jnp.float64 else TARGETS_FLOAT32
 
-    def write(arranged):
+    def write():
         with open(out / f"{args.name}.json", "w") as f:
-            json.dump(dict(machine=C.machine(), t_end=T_END, targets=targets, rows=rows, arrangements=arranged), f, indent=1)
+            json.dump(dict(machine=C.machine(), t_end=T_END, targets=targets, rows=rows), f, indent=1)
 
     for scene_name in list(SCENES)[:1] if args.quick else SCENES:
         for regime in args.regimes.split(","):
@@ -451,12 +520,9 @@ def main(argv=None):
                 without=args.without.split(","),
                 only=[m for m in args.methods.split(",") if m],
             )
-            write([])  # what a run cut short has measured so far
-    write([] if args.short else arrangements(args.quick))
-    table = write_tables.accuracy_table(write_tables.entries_of(dict(machine=C.machine(), targets=targets, rows=rows), args.name))
-    (out / f"{args.name}.md").write_text(table + "\n")
+            write()  # what a run cut short has measured so far
     plot(rows, out / f"{args.name}.png", targets)
-    print(table)
+    print(accuracy_table(entries_of(dict(machine=C.machine(), targets=targets, rows=rows), args.name)))
 
 
 if __name__ == "__main__":
