@@ -163,8 +163,10 @@ def _keeping_every(every: int, kept: list):
     which it appends to `kept` (the loop's caller reads it from there)."""
 
     def outer_while_loop(cond_fun, body_fun, init_val, *, max_steps, **kwargs):
-        del kwargs
         slots = max_steps // every
+        if slots == 0:  # max_steps < K: nothing to keep; the backward pass starts from the last state
+            return _step_loop(cond_fun, body_fun, init_val, max_steps=max_steps, **kwargs)
+        del kwargs
 
         def body(carry):
             state, buffer = carry

@@ -147,17 +147,15 @@ def scene_order(method: pk.AbstractMethod, scene, y0, args, t_end: float, steps,
     return slope, errors
 
 
-def assert_generator_matches_embedding(scene, t, y, args, atol=1e-13):
-    """d/ds of y·exp(s(ξ, η)) at s = 0, through the bundle's own product and
-    exp (`jax.jvp`), equals the scene's embedding field at (t, y): the two
-    ways the scene states its equations agree."""
-    xi, eta = scene(t, y, args)
-
-    def moved(s):
-        return scene.to_embedding(scene.bundle.multiply(y, scene.bundle.map(pk.Exp(), (s * xi, s * eta))))
-
-    _, velocity = jax.jvp(moved, (0.0,), (1.0,))
-    np.testing.assert_allclose(velocity, scene.embedding_field(t, scene.to_embedding(y), args), atol=atol)
+def assert_embedding_field_is(formula, scene, t, y, args, atol=1e-13):
+    """The scene's embedding field equals `formula(t, z, args)` (its
+    equations written out) at (t, y) and off the group (the embedded state
+    scaled by 1.01), and so does the field derived from its generator
+    (`derived_embedding_field`)."""
+    for z in (scene.to_embedding(y), 1.01 * scene.to_embedding(y)):
+        expected = formula(t, z, args)
+        np.testing.assert_allclose(scene.embedding_field(t, z, args), expected, atol=atol)
+        np.testing.assert_allclose(pk.scenes.derived_embedding_field(scene, t, z, args), expected, atol=atol)
 
 
 def max_leaf_difference(a, b) -> float:

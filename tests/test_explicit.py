@@ -160,19 +160,6 @@ def test_vmap_of_diffeqsolve_equals_the_batch_in_the_state():
     assert max_leaf_difference(jax.tree.map(lambda a: a[:, -1], vmapped), jax.tree.map(lambda a: a[-1], in_state)) < 1e-13
 
 
-@pytest.mark.parametrize("layout", ["unrolled", "loop"])
-def test_float32(layout):
-    top = TOPS["cotangent"]
-    method = pk.PRKMK(top.bundle, pk.Cayley(), pk.dormand_prince_8, form="body", explicit_stages=layout)
-    y0 = jax.tree.map(lambda a: a.astype(jnp.float32), _batch_state(4))
-    args = jax.tree.map(lambda a: a.astype(jnp.float32), TOP_ARGS)
-    ys = pk.integrate(method, top, y0, 0.0, 0.1, 100, args, save_every=100).ys
-    assert ys.fiber.dtype == jnp.float32
-    y64 = pk.integrate(top.method(pk.dormand_prince_8, pk.Cayley()), top, _batch_state(4), 0.0, 0.1, 100, TOP_ARGS, save_every=100).ys
-    assert max_leaf_difference(jax.tree.map(lambda a: a.astype(jnp.float64), ys), y64) < 1e-4
-    assert float(jnp.max(pk.diagnostics.orthogonality_defect(ys.base.matrix))) < 1e-6
-
-
 @pytest.mark.parametrize("tab", pk.tableaus.EXPLICIT_TABLEAUS, ids=lambda t: t.name)
 def test_explicit_tableaus_need_no_iteration(tab):
     field = rigid_body_field(pk.Cotangent(pk.SO3), "body")

@@ -8,7 +8,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import prkmk_jax as pk
-from helpers import INERTIA, initial_state, reference, rigid_body_field, state_vector
+from helpers import INERTIA, initial_state, rigid_body_field
 
 COTANGENT = pk.Cotangent(pk.SO3)
 FIELD = rigid_body_field(COTANGENT, "body")
@@ -264,18 +264,3 @@ def test_non_converging_implicit_stage():
 
     newton = pk.PRKMK(bundle, pk.Exp(), pk.symplectic_euler, form="body", root_finder=optx.Newton(rtol=1e-10, atol=1e-10))
     assert pk.integrate(newton, field, y0, 0.0, 1.0, 5, jnp.asarray(INERTIA), throw=False).result == pk.RESULTS.successful
-
-
-def test_float32():
-    y64 = initial_state(COTANGENT)
-    y32 = jax.tree.map(lambda a: a.astype(jnp.float32), y64)
-    inertia = jnp.asarray(INERTIA, jnp.float32)
-    for tab in (pk.stormer_verlet, pk.lobatto_iiia_iiib4):
-        traj = jax.jit(lambda y: pk.integrate(_method(tab), FIELD, y, 0.0, 0.01, 200, inertia, save_every=200))(y32)
-        assert traj.ys.base.matrix.dtype == jnp.float32 and traj.ys.fiber.dtype == jnp.float32
-        assert traj.result == pk.RESULTS.successful
-        ref = reference(COTANGENT, y64, 2.0)
-        err = np.abs(state_vector(COTANGENT, jax.tree.map(lambda a: a[-1], traj.ys)) - ref).max()
-        assert err < (1e-3 if tab.order == 2 else 1e-5), err
-        q = np.asarray(traj.ys.base.matrix[-1], np.float64)
-        assert np.abs(q.T @ q - np.eye(3)).max() < 1e-5

@@ -274,19 +274,3 @@ def test_gradients_wrt_initial_momentum_and_inertia_under_vmap():
 
             fd = np.array([(shifted(e, 1) - shifted(e, -1)) / (2 * eps) for e in jnp.eye(3)])
             np.testing.assert_allclose(grad[b], fd, rtol=1e-6, atol=1e-9 * np.abs(fd).max())
-
-
-def test_float32_state_with_float32_times_stays_float32():
-    """diffeqsolve promotes y0 to the dtype of the times (README: give float32
-    times for a float32 solve); with them the run stays float32 and matches
-    the float32 scan integrator."""
-    y32 = jax.tree.map(lambda a: a.astype(jnp.float32), initial_state(COTANGENT))
-    inertia = jnp.asarray(INERTIA, jnp.float32)
-    method = _method()
-    t0, t1, dt = jnp.float32(0.0), jnp.float32(1.0), jnp.float32(0.05)
-    sol = diffrax.diffeqsolve(TERM, pk.PRKMKSolver(method), t0, t1, dt, y32, inertia)
-    assert sol.ys.fiber.dtype == jnp.float32 and sol.ys.base.matrix.dtype == jnp.float32
-    traj = pk.integrate(method, FIELD, y32, 0.0, 0.05, 20, inertia, save_every=20)
-    np.testing.assert_allclose(sol.ys.fiber[-1], traj.ys.fiber[-1], rtol=0, atol=1e-5)
-    promoted = diffrax.diffeqsolve(TERM, pk.PRKMKSolver(method), 0.0, 1.0, 0.05, y32, inertia)
-    assert promoted.ys.fiber.dtype == jnp.float64

@@ -1,4 +1,5 @@
 from .base import AbstractScene as AbstractScene
+from .base import derived_embedding_field as derived_embedding_field
 from .forced_body import ForcedParameters as ForcedParameters
 from .forced_body import ForcedRigidBody as ForcedRigidBody
 from .forced_body import HarmonicTorque as HarmonicTorque

@@ -19,7 +19,7 @@ from jaxtyping import Array, Float, PyTree
 from .. import diagnostics, exact_flows
 from ..bundles import AbstractBundle, BundleElement
 from ..fields import Time
-from ..groups import hat
+from . import body_frame
 from .base import AbstractBodyOnTStarSO3, checked_moments, checked_parameters, rotation_matrix
 
 
@@ -95,23 +95,18 @@ class ForcedRigidBody(AbstractBodyOnTStarSO3, exact_flows.AbstractSplitScene):
         }
 
     def exact_flows(self, args: ForcedParameters):
-        moments = exact_flows.principal_moments(args.inertia, "ForcedRigidBody", batched=True)
-        frame = exact_flows.InertiaOrderedFrame.of(moments)
+        moments = body_frame.principal_moments(args.inertia, "ForcedRigidBody", batched=True)
+        frame = body_frame.InertiaOrderedFrame.of(moments)
 
         def torque(t, z, args):
             body = jnp.broadcast_to(self.torque_law(t, args.torque), z.shape[1:] + (3,))
             return jnp.moveaxis(frame.vector(body), -1, 0)
 
         kick = exact_flows.MomentumKick((9, 10, 11), torque)
-        return (kick,) + exact_flows.axis_rotations(frame, moments, momentum_row=9, matrix_rows=(0,))
+        return (kick,) + body_frame.axis_rotations(frame, moments, momentum_row=9, matrix_rows=(0,))
 
     def pack(self, y, args: ForcedParameters):
-        return exact_flows.packed_body_state(y, exact_flows.principal_moments(args.inertia, "ForcedRigidBody", batched=True))
+        return body_frame.packed_body_state(y, body_frame.principal_moments(args.inertia, "ForcedRigidBody", batched=True))
 
     def unpack(self, z, like, args: ForcedParameters):
-        return exact_flows.unpacked_body_state(z, like, exact_flows.principal_moments(args.inertia, "ForcedRigidBody", batched=True))
-
-    def embedding_field(self, t, z, args: ForcedParameters):
-        q, pi = z[:9].reshape(3, 3), z[9:]
-        omega = pi / args.inertia
-        return jnp.concatenate([(q @ hat(omega)).ravel(), jnp.cross(pi, omega) + self.torque_law(t, args.torque)])
+        return body_frame.unpacked_body_state(z, like, body_frame.principal_moments(args.inertia, "ForcedRigidBody", batched=True))

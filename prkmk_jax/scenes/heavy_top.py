@@ -29,7 +29,16 @@ from jaxtyping import Array, Float
 from .. import diagnostics, exact_flows
 from ..bundles import AbstractBundle, BundleElement, Cotangent, DirectProduct
 from ..groups import SO3, hat
-from .base import AbstractScene, checked_moments, checked_parameters, checked_vector, rotation_and_vector_embedding, rotation_matrix
+from . import body_frame
+from .base import (
+    AbstractScene,
+    checked_moments,
+    checked_parameters,
+    checked_vector,
+    rotation_and_vector_embedding,
+    rotation_and_vector_state,
+    rotation_matrix,
+)
 
 
 class TopParameters(eqx.Module):
@@ -54,7 +63,7 @@ def _vertical(q: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     return q[..., 2, :]
 
 
-def gravity_torque(frame: exact_flows.InertiaOrderedFrame, lever: Array):
+def gravity_torque(frame: body_frame.InertiaOrderedFrame, lever: Array):
     """(t, z, args) ↦ Γ × ℓ on the state packed in `frame` (Γ = Qᵀe₃, rows
     6–8), in that frame's components: the parity times the cross product
     of the relabelled vectors."""
@@ -82,7 +91,7 @@ class HeavyTop(AbstractScene, exact_flows.AbstractSplitScene):
     It splits (`splitting()`) into the gravity kick Π ↦ Π + hΓ × ℓ (the
     flow of the potential ℓ·Γ: the attitude stands still) and the three
     axis terms of the kinetic energy, in that order (the kick outermost, then
-    the axes by increasing inertia, `exact_flows.InertiaOrderedFrame`).
+    the axes by increasing inertia, `body_frame.InertiaOrderedFrame`).
     Each part keeps Γ·Π, so the splitting keeps it to round-off."""
 
     bundle: AbstractBundle = eqx.field(default_factory=lambda: Cotangent(SO3))
@@ -121,6 +130,8 @@ class HeavyTop(AbstractScene, exact_flows.AbstractSplitScene):
         }
 
     def embedding_field(self, t, z: Float[Array, "12"], args: TopParameters) -> Float[Array, "12"]:
+        """Written out (the Euclidean peers' field in the benchmarks); equal to
+        the generator's (`derived_embedding_field`)."""
         q, pi = z[:9].reshape(3, 3), z[9:]
         omega = pi / args.inertia
         return jnp.concatenate([(q @ hat(omega)).ravel(), jnp.cross(pi, omega) + jnp.cross(_vertical(q), args.lever)])
@@ -128,17 +139,20 @@ class HeavyTop(AbstractScene, exact_flows.AbstractSplitScene):
     def to_embedding(self, y: BundleElement) -> Float[Array, "*batch 12"]:
         return rotation_and_vector_embedding(y)
 
+    def from_embedding(self, z: Float[Array, "*batch 12"]) -> BundleElement:
+        return rotation_and_vector_state(z)
+
     def exact_flows(self, args: TopParameters):
-        moments = exact_flows.principal_moments(args.inertia, "HeavyTop", batched=True)
-        frame = exact_flows.InertiaOrderedFrame.of(moments)
+        moments = body_frame.principal_moments(args.inertia, "HeavyTop", batched=True)
+        frame = body_frame.InertiaOrderedFrame.of(moments)
         kick = exact_flows.MomentumKick((9, 10, 11), gravity_torque(frame, jnp.asarray(args.lever)))
-        return (kick,) + exact_flows.axis_rotations(frame, moments, momentum_row=9, matrix_rows=(0,))
+        return (kick,) + body_frame.axis_rotations(frame, moments, momentum_row=9, matrix_rows=(0,))
 
     def pack(self, y, args: TopParameters):
-        return exact_flows.packed_body_state(y, exact_flows.principal_moments(args.inertia, "HeavyTop", batched=True))
+        return body_frame.packed_body_state(y, body_frame.principal_moments(args.inertia, "HeavyTop", batched=True))
 
     def unpack(self, z, like, args: TopParameters):
-        return exact_flows.unpacked_body_state(z, like, exact_flows.principal_moments(args.inertia, "HeavyTop", batched=True))
+        return body_frame.unpacked_body_state(z, like, body_frame.principal_moments(args.inertia, "HeavyTop", batched=True))
 
 
 class SphericalTop(AbstractScene):
@@ -181,10 +195,8 @@ class SphericalTop(AbstractScene):
     def to_embedding(self, y: BundleElement) -> Float[Array, "*batch 12"]:
         return rotation_and_vector_embedding(y)
 
-    def embedding_field(self, t, z: Float[Array, "12"], args: TopParameters) -> Float[Array, "12"]:
-        _check_isotropic(args)
-        q, pi = z[:9].reshape(3, 3), z[9:]
-        return jnp.concatenate([(q @ hat(pi / args.inertia)).ravel(), jnp.cross(_vertical(q), args.lever)])
+    def from_embedding(self, z: Float[Array, "*batch 12"]) -> BundleElement:
+        return rotation_and_vector_state(z)
 
 
 def _check_isotropic(args: TopParameters) -> None:

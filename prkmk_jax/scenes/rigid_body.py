@@ -25,12 +25,14 @@ from jaxtyping import Array, Float
 from .. import diagnostics, exact_flows
 from ..bundles import AbstractBundle, AbstractSemidirect, BundleElement, Cartesian, Cotangent, DirectProduct
 from ..groups import SO3, SOn, hat, vee
+from . import body_frame
 from .base import (
     AbstractScene,
     checked_inertia_tensor,
     checked_moments,
     checked_pair_masses,
     rotation_and_vector_embedding,
+    rotation_and_vector_state,
     rotation_matrix,
 )
 
@@ -227,7 +229,7 @@ class FreeRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
 
     It splits (`splitting()`) into the three axis terms ½Πᵢ²/Iᵢ of its
     energy, each a rotation about a body axis (principal moments only), the
-    axis of smallest inertia outermost (`exact_flows.InertiaOrderedFrame`)."""
+    axis of smallest inertia outermost (`body_frame.InertiaOrderedFrame`)."""
 
     bundle: AbstractBundle = eqx.field(default_factory=lambda: Cotangent(SO3))
     form: Literal["space", "body"] = eqx.field(default="body", static=True)
@@ -272,18 +274,23 @@ class FreeRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
     def to_embedding(self, y: BundleElement) -> Float[Array, "*batch 12"]:
         return rotation_and_vector_embedding(y)
 
+    def from_embedding(self, z: Float[Array, "*batch 12"]) -> BundleElement:
+        return rotation_and_vector_state(z)
+
     def embedding_field(self, t, z, inertia):
+        """Written out (`embedding_field`, the Euclidean peers' field in the
+        benchmarks); equal to the generator's (`derived_embedding_field`)."""
         return embedding_field(t, z, inertia)
 
     def exact_flows(self, inertia):
-        moments = exact_flows.principal_moments(inertia, "FreeRigidBody")
-        return exact_flows.axis_rotations(exact_flows.InertiaOrderedFrame.of(moments), moments, momentum_row=9, matrix_rows=(0,))
+        moments = body_frame.principal_moments(inertia, "FreeRigidBody")
+        return body_frame.axis_rotations(body_frame.InertiaOrderedFrame.of(moments), moments, momentum_row=9, matrix_rows=(0,))
 
     def pack(self, y, inertia):
-        return exact_flows.packed_body_state(y, exact_flows.principal_moments(inertia, "FreeRigidBody"))
+        return body_frame.packed_body_state(y, body_frame.principal_moments(inertia, "FreeRigidBody"))
 
     def unpack(self, z, like, inertia):
-        return exact_flows.unpacked_body_state(z, like, exact_flows.principal_moments(inertia, "FreeRigidBody"))
+        return body_frame.unpacked_body_state(z, like, body_frame.principal_moments(inertia, "FreeRigidBody"))
 
 
 class SymmetricRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
@@ -334,19 +341,17 @@ class SymmetricRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
         q, p = rotation_matrix(y.base), rotation_matrix(y.fiber)
         return jnp.concatenate([q.reshape(*q.shape[:-2], -1), p.reshape(*p.shape[:-2], -1)], axis=-1)
 
-    def embedding_field(self, t, z, inertia):
+    def from_embedding(self, z: Float[Array, "*batch d"]) -> BundleElement:
         n = int(round((z.shape[-1] // 2) ** 0.5))
-        q, p = z[: n * n].reshape(n, n), z[n * n :].reshape(n, n)
-        m = q.T @ p - p.T @ q
-        omega = angular_velocity(vee(m), inertia, False) if n == 3 else angular_velocity(m, inertia, True)
-        omega_hat = hat(omega) if n == 3 else omega
-        return jnp.concatenate([(q @ omega_hat).ravel(), (p @ omega_hat).ravel()])
+        q, p = z[..., : n * n], z[..., n * n :]
+        group = SO3 if self.bundle.base is SO3 else SOn
+        return BundleElement(group(q.reshape(*z.shape[:-1], n, n)), group(p.reshape(*z.shape[:-1], n, n)))
 
     def exact_flows(self, inertia):
         if self.bundle.base is not SO3:
             raise ValueError("SymmetricRigidBody splits on Cartesian(SO3) only; on SO(n) use a PRKMK method.")
-        moments = exact_flows.principal_moments(inertia, "SymmetricRigidBody", batched=True)
-        ordered = exact_flows.InertiaOrderedFrame.of(moments).vector(moments)
+        moments = body_frame.principal_moments(inertia, "SymmetricRigidBody", batched=True)
+        ordered = body_frame.InertiaOrderedFrame.of(moments).vector(moments)
 
         def rate(axis):
             # Mᵢ = Aₖⱼ − Aⱼₖ with A = QᵀP, Aₐᵦ = Σᵣ Q_rₐ P_rᵦ, (i, j, k) cyclic. In
@@ -359,17 +364,17 @@ class SymmetricRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
 
             return lambda z, args: (entry(z, k, j) - entry(z, j, k)) / ordered[..., axis]
 
-        pairs = [exact_flows.column_pairs(axis, 0) + exact_flows.column_pairs(axis, 9) for axis in range(3)]
+        pairs = [body_frame.column_pairs(axis, 0) + body_frame.column_pairs(axis, 9) for axis in range(3)]
         return tuple(exact_flows.AxisRotation(axis, pair, rate(axis), rate_reads_turned_rows=True) for axis, pair in zip(range(3), pairs))
 
     def pack(self, y, inertia):
         q, p = rotation_matrix(y.base), rotation_matrix(y.fiber)
         flat = jnp.concatenate([q.reshape(*q.shape[:-2], 9), p.reshape(*p.shape[:-2], 9)], axis=-1)
-        frame = exact_flows.InertiaOrderedFrame.of(exact_flows.principal_moments(inertia, "SymmetricRigidBody", batched=True))
+        frame = body_frame.InertiaOrderedFrame.of(body_frame.principal_moments(inertia, "SymmetricRigidBody", batched=True))
         return frame.relabel(jnp.moveaxis(flat, -1, 0), (0, 9), ())
 
     def unpack(self, z, like, inertia):
-        frame = exact_flows.InertiaOrderedFrame.of(exact_flows.principal_moments(inertia, "SymmetricRigidBody", batched=True))
+        frame = body_frame.InertiaOrderedFrame.of(body_frame.principal_moments(inertia, "SymmetricRigidBody", batched=True))
         flat = jnp.moveaxis(frame.restore(z, (0, 9), ()), 0, -1)
         batch = flat.shape[:-1]
         return BundleElement(SO3(flat[..., :9].reshape(*batch, 3, 3)), SO3(flat[..., 9:].reshape(*batch, 3, 3)))
