@@ -10,7 +10,7 @@ import pytest
 
 import prkmk_jax as pk
 from helpers import INERTIA, PositiveReals, initial_state, rigid_body_field
-from prkmk_jax.scenes import ForcedParameters, ForcedRigidBody, FreeRigidBody, HeavyTop, SymmetricRigidBody, TopParameters
+from prkmk_jax.scenes import ForcedParameters, ForcedRigidBody, FreeRigidBody, HeavyTop, SphericalTop, SymmetricRigidBody, TopParameters
 
 COTANGENT = pk.Cotangent(pk.SO3)
 FIELD = rigid_body_field(COTANGENT, "body")
@@ -38,6 +38,14 @@ FREE_BODY = FreeRigidBody()
 SYMMETRIC_SO4 = SymmetricRigidBody(pk.Cartesian(pk.SOn))
 SO4_STATE = pk.BundleElement(pk.SOn(jnp.eye(4)), pk.SOn(jnp.eye(4)))
 SPACE_FORM_METHOD = pk.PRKMK(COTANGENT, tableau=pk.stormer_verlet)  # form="space" by default
+
+
+NOT_SYMMETRIC = pk.Composition(METHOD, pk.yoshida_triple_jump)  # SV∘triple jump: not undone exactly by its adjoint
+
+
+def _reversible_adjoint_gradient(**options):
+    options = dict(adjoint=pk.ReversibleAdjoint(), max_steps=100) | options
+    return jax.grad(lambda a: jnp.sum(_diffeqsolve(args=a, **options).fiber))(ARGS)
 
 
 def _wrong_shape_field(t, y, args):
@@ -174,6 +182,72 @@ STATIC = {
     "diffeqsolve y0 not a BundleElement": (lambda: _diffeqsolve(y0=(GOOD.base, GOOD.fiber)), TypeError, "BundleElement"),
     "PRKMKSolver of Tsit5": (lambda: pk.PRKMKSolver(diffrax.Tsit5()), TypeError, "wraps a PRKMK"),
     "PRKMKTerm with Tsit5": (lambda: _diffeqsolve(solver=diffrax.Tsit5()), NotImplementedError, "Lie-algebra generator"),
+    # splittings
+    "splitting, an inertia tensor": (
+        lambda: _integrate(method=FREE_BODY.splitting(), field=FREE_BODY, args=jnp.diag(ARGS)),
+        ValueError,
+        "principal moments",
+    ),
+    "splitting of another scene": (
+        lambda: _integrate(method=FREE_BODY.splitting(), field=TOP, args=TOP_ARGS),
+        ValueError,
+        "integrates the scene it was built for",
+    ),
+    "splitting of another scene, diffeqsolve": (
+        lambda: _diffeqsolve(term=pk.PRKMKTerm(TOP), solver=pk.PRKMKSolver(FREE_BODY.splitting()), args=TOP_ARGS),
+        ValueError,
+        "integrates the scene it was built for",
+    ),
+    "splitting of a scene that does not split": (lambda: SphericalTop().splitting(), TypeError, "splits into exactly solvable parts"),
+    "splitting of the symmetric body on SO(4)": (
+        lambda: _integrate(SO4_STATE, method=SYMMETRIC_SO4.splitting(), field=SYMMETRIC_SO4, args=jnp.ones(4)),
+        ValueError,
+        r"Cartesian\(SO3\) only",
+    ),
+    # reversible gradients
+    "ReversibleGradient of a method not undone exactly": (
+        lambda: jax.grad(lambda a: jnp.sum(_integrate(args=a, method=NOT_SYMMETRIC, gradient=pk.ReversibleGradient()).fiber))(ARGS),
+        TypeError,
+        "can be undone exactly",
+    ),
+    "ReversibleGradient, checkpoint_every 0": (lambda: pk.ReversibleGradient(checkpoint_every=0), ValueError, "checkpoint_every"),
+    "ReversibleGradient, a negative tolerance": (
+        lambda: pk.ReversibleGradient(max_reconstruction_error=-1.0),
+        ValueError,
+        "max_reconstruction_error",
+    ),
+    "gradient given as a string": (lambda: _integrate(gradient="reversible"), TypeError, "ReversibleGradient"),
+    "ReversibleGradient in forward mode": (
+        lambda: jax.jvp(lambda a: jnp.sum(_integrate(args=a, gradient=pk.ReversibleGradient()).fiber), (ARGS,), (jnp.ones(3),)),
+        TypeError,
+        "forward-mode",
+    ),
+    "ReversibleAdjoint with a PID controller": (
+        lambda: _reversible_adjoint_gradient(stepsize_controller=diffrax.PIDController(rtol=1e-6, atol=1e-6)),
+        ValueError,
+        "ConstantStepSize",
+    ),
+    "ReversibleAdjoint saving at times": (
+        lambda: _reversible_adjoint_gradient(saveat=diffrax.SaveAt(ts=jnp.array([0.5, 1.0]))),
+        ValueError,
+        "SaveAt",
+    ),
+    "ReversibleAdjoint of a method not undone exactly": (
+        lambda: _reversible_adjoint_gradient(solver=pk.PRKMKSolver(NOT_SYMMETRIC)),
+        TypeError,
+        "can be undone exactly",
+    ),
+    "ReversibleAdjoint without max_steps": (
+        lambda: _reversible_adjoint_gradient(max_steps=None),
+        ValueError,
+        "needs diffeqsolve's max_steps",
+    ),
+    "ReversibleAdjoint, a zero tolerance": (
+        lambda: pk.ReversibleAdjoint(max_reconstruction_error=0.0),
+        ValueError,
+        "max_reconstruction_error",
+    ),
+    "ReversibleAdjoint, checkpoint_every 0": (lambda: pk.ReversibleAdjoint(checkpoint_every=0), ValueError, "checkpoint_every"),
 }
 
 

@@ -126,10 +126,10 @@ def _final_momentum_projection(method, field, y0, args, through):
     "through, batch, tableau",
     # Gradients through unrolled stages compile slowly, more so with DP 8's
     # 13 stages: the unrolled layout is differentiated with RK 4 (the same
-    # code), and diffeqsolve's stages are the same code as integrate's
-    # (`test_vmap_of_diffeqsolve_equals_the_batch_in_the_state`).
-    [("integrate", None, pk.classical_rk4), ("integrate", 16, pk.dormand_prince_8), ("diffeqsolve", 16, pk.dormand_prince_8)],
-    ids=["one (unrolled), RK 4-integrate", "batch 16 (loop)-integrate", "batch 16 (loop)-diffeqsolve"],
+    # code) through integrate, the loop through diffeqsolve, whose stages are
+    # the same code as integrate's (`test_vmap_of_diffeqsolve_equals_the_batch_in_the_state`).
+    [("integrate", None, pk.classical_rk4), ("diffeqsolve", 16, pk.dormand_prince_8)],
+    ids=["one (unrolled), RK 4-integrate", "batch 16 (loop)-diffeqsolve"],
 )
 def test_gradient_in_the_lever_matches_finite_differences(through, batch, tableau):
     top = TOPS["cotangent"]

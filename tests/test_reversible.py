@@ -1,7 +1,7 @@
 """Reversible gradients (`ReversibleGradient`): equal to the gradient through
 the stored steps and to finite differences, for every family of methods
 that can be undone; memory that does not grow with the number of steps;
-closures, vmap and refusals (float32: test_float32.py)."""
+closures and vmap (float32: test_float32.py; refusals: test_bad_inputs.py)."""
 
 import dataclasses
 
@@ -189,23 +189,6 @@ def test_vmapped_over_initial_states():
     np.testing.assert_allclose(jax.grad(batch_loss)(INERTIA, pk.ReversibleGradient()), stored, rtol=1e-10)
 
 
-def test_refusals():
-    not_symmetric = pk.Composition(FREE.method(pk.stormer_verlet), pk.yoshida_triple_jump)
-    with pytest.raises(TypeError, match="can be undone exactly"):
-        _gradients(not_symmetric, FREE, INERTIA, gradient=pk.ReversibleGradient())
-    with pytest.raises(ValueError, match="checkpoint_every"):
-        pk.ReversibleGradient(checkpoint_every=0)
-    with pytest.raises(ValueError, match="max_reconstruction_error"):
-        pk.ReversibleGradient(max_reconstruction_error=-1.0)
-    with pytest.raises(TypeError, match="ReversibleGradient"):
-        _gradients(FREE.method(pk.stormer_verlet), FREE, INERTIA, gradient="reversible")
-    # Reverse mode only: forward mode raises (and works with StoredSteps()).
-    loss = _loss(FREE.splitting(), FREE, 10, 10, pk.ReversibleGradient())
-    with pytest.raises(TypeError, match="forward-mode"):
-        jax.jvp(lambda a: loss(Y0, a), (INERTIA,), (jnp.ones(3),))
-    assert np.isfinite(jax.jvp(lambda a: _loss(FREE.splitting(), FREE, 10, 10, pk.StoredSteps())(Y0, a), (INERTIA,), (jnp.ones(3),))[1])
-
-
 # --- diffeqsolve: ReversibleAdjoint ------------------------------------------------
 
 
@@ -268,31 +251,6 @@ def test_reversible_adjoint_checks_the_rebuilt_states():
     assert _relative_gap(reference, gradient(pk.ReversibleAdjoint(checkpoint_every=100))) <= 1e-8
 
 
-def test_reversible_adjoint_refusals():
-    method = FREE.method(pk.stormer_verlet)
-
-    def solve(method=method, **kwargs):
-        options = dict(adjoint=pk.ReversibleAdjoint(), max_steps=100) | kwargs
-
-        def loss(args):
-            return diffrax.diffeqsolve(pk.PRKMKTerm(FREE), pk.PRKMKSolver(method), 0.0, 1.0, 0.1, Y0, args, **options).ys.fiber.sum()
-
-        return jax.grad(loss)(INERTIA)
-
-    with pytest.raises(ValueError, match="ConstantStepSize"):
-        solve(stepsize_controller=diffrax.PIDController(rtol=1e-6, atol=1e-6))
-    with pytest.raises(ValueError, match="SaveAt"):
-        solve(saveat=diffrax.SaveAt(ts=jnp.array([0.5, 1.0])))
-    with pytest.raises(TypeError, match="can be undone exactly"):
-        solve(method=pk.Composition(method, pk.yoshida_triple_jump))
-    with pytest.raises(ValueError, match="max_reconstruction_error"):
-        pk.ReversibleAdjoint(max_reconstruction_error=0.0)
-    with pytest.raises(ValueError, match="checkpoint_every"):
-        pk.ReversibleAdjoint(checkpoint_every=0)
-    with pytest.raises(ValueError, match="needs diffeqsolve's max_steps"):
-        solve(max_steps=None)
-
-
 @pytest.mark.parametrize("t1, dt0", [(1.23, 0.05), (1.0, 0.1), (0.3, 0.5), (7.0, 0.013)])
 def test_reversible_adjoint_steps_at_diffrax_times(t1, dt0):
     """The times the backward pass undoes the steps at are those of diffrax's
@@ -305,3 +263,10 @@ def test_reversible_adjoint_steps_at_diffrax_times(t1, dt0):
     n = int(sol.stats["num_steps"])
     ends = jax.vmap(_constant_step_ends(jnp.asarray(0.0), jnp.asarray(t1), jnp.asarray(dt0)))(jnp.arange(1, n + 1))
     np.testing.assert_allclose(ends, sol.ts[:n], rtol=2.3e-16, atol=0)
+
+
+def test_forward_mode_runs_through_the_stored_steps():
+    """`ReversibleGradient` refuses forward mode (`tests/test_bad_inputs.py`);
+    the stored steps give it."""
+    loss = _loss(FREE.splitting(), FREE, 10, 10, pk.StoredSteps())
+    assert np.isfinite(jax.jvp(lambda a: loss(Y0, a), (INERTIA,), (jnp.ones(3),))[1])

@@ -1,6 +1,6 @@
 """Exact-flow splitting methods: the parts against the fields and the bundle
 group's own exponential, empirical orders against DOP853, symmetry, what
-they keep over long runs, gradients, batches and refusals (float32: test_float32.py)."""
+they keep over long runs, gradients and batches (float32: test_float32.py; refusals: test_bad_inputs.py)."""
 
 import diffrax
 import equinox as eqx
@@ -19,7 +19,6 @@ from prkmk_jax.scenes import (
     FreeRigidBody,
     HarmonicTorque,
     HeavyTop,
-    SphericalTop,
     SymmetricRigidBody,
     TopParameters,
     random_rotation,
@@ -365,23 +364,6 @@ def test_the_wrappers_take_a_splitting():
     composed = pk.Composition(strang, pk.suzuki_5).step(FREE, t, y0, h, INERTIA).y
     fused = FREE.splitting(pk.suzuki_5).step(FREE, t, y0, h, INERTIA).y
     assert max_leaf_difference(composed, fused) < 1e-14
-
-
-def test_refusals():
-    with pytest.raises(ValueError, match="principal moments"):
-        pk.integrate(FREE.splitting(), FREE, _state(0), 0.0, 0.1, 2, jnp.diag(INERTIA))
-    with pytest.raises(ValueError, match="integrates the scene it was built for"):
-        pk.integrate(FREE.splitting(), TOP, _state(0), 0.0, 0.1, 2, TOP_ARGS)
-    with pytest.raises(ValueError, match="integrates the scene it was built for"):
-        diffrax.diffeqsolve(pk.PRKMKTerm(TOP), pk.PRKMKSolver(FREE.splitting()), 0.0, 0.2, 0.1, _state(0), TOP_ARGS)
-    with pytest.raises(TypeError, match="splits into exactly solvable parts"):
-        SphericalTop().splitting()
-    with pytest.raises(ValueError, match="Cartesian\\(SO3\\) only"):
-        scene = SymmetricRigidBody(pk.Cartesian(pk.SOn))
-        y0 = pk.BundleElement(pk.SOn(jnp.eye(4)), pk.SOn(jnp.eye(4)))
-        pk.integrate(scene.splitting(), scene, y0, 0.0, 0.1, 2, jnp.ones(4))
-    with pytest.raises(ValueError, match="Strang splitting has order 2"):
-        FREE.splitting(pk.triple_jump(4))
 
 
 @pytest.mark.parametrize("layout", ["in the state", "vmapped"])
