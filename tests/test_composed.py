@@ -194,42 +194,6 @@ _SV_COT = _prkmk(COTANGENT)
 _SYM_SV_CART = pk.Symmetrized(_prkmk(CARTESIAN))
 
 
-@pytest.mark.parametrize(
-    "method,steps",
-    [
-        (pk.Composition(_SV_COT, pk.yoshida_triple_jump, assume_symmetric_base=True), (10, 20, 40)),
-        (pk.Composition(_SV_COT, pk.suzuki_5, assume_symmetric_base=True), (10, 20, 40)),
-        (pk.Composition(_SV_COT, pk.kahan_li_6, assume_symmetric_base=True), (8, 16, 32)),
-        (pk.Composition(_SV_COT, pk.mclachlan_8, assume_symmetric_base=True), (6, 12, 24)),
-        (pk.Composition(_SV_COT, pk.kahan_li_8, assume_symmetric_base=True), (6, 12, 24)),
-        # With Exp()'s default truncation the free body on T*SO(3) shows 7.0 (its
-        # h⁶ error constant nearly cancels); the exact dexp⁻¹ shows the order.
-        (_prkmk(COTANGENT, pk.lobatto_iiia_iiib6, pk.Exp(None)), (8, 16, 32)),
-        (pk.Symmetrized(_prkmk(CARTESIAN, pk.symplectic_euler)), (40, 80, 160)),
-        (pk.Composition(_SYM_SV_CART, pk.yoshida_triple_jump), (40, 80, 160)),
-        (pk.Composition(_SYM_SV_CART, pk.kahan_li_6), (16, 32, 64)),
-        (pk.Composition(_SYM_SV_CART, pk.kahan_li_8), (16, 24, 32)),
-        (_prkmk(CARTESIAN, pk.lobatto_iiia_iiib6), (20, 40, 80)),
-    ],
-    ids=[
-        "triple-cot",
-        "suzuki-cot",
-        "KL6-cot",
-        "McL8-cot",
-        "KL8-cot",
-        "L6-cot",
-        "symSE-cart",
-        "triple-cart",
-        "KL6-cart",
-        "KL8-cart",
-        "L6-cart",
-    ],
-)
-def test_empirical_order(method, steps):
-    slope, errors = empirical_order(method, steps=steps)
-    assert abs(slope - method.order) <= 0.2, (slope, errors)
-
-
 def test_a_composition_of_a_base_not_symmetric_claims_no_more_than_it_shows():
     """Störmer–Verlet with the exact dexp⁻¹ is not symmetric on T*SO(3)
     (its coordinates are centred at the step's start): composed by

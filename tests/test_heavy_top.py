@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import assert_embedding_field_is, scene_order, scene_reference
+from helpers import assert_embedding_field_is, scene_reference
 from prkmk_jax.scenes import HeavyTop, TopParameters, random_rotation
 
 TOP = HeavyTop()
@@ -57,26 +57,6 @@ def test_the_exact_flow_keeps_energy_and_vertical_momentum(args):
         np.testing.assert_allclose(values, values[0], atol=1e-10, err_msg=name)
     if args is LAGRANGE:
         np.testing.assert_allclose(zs[:, 11], zs[0, 11], atol=1e-10)
-
-
-ORDERS = {  # name: (scene, method, order)
-    "SE": (TOP, TOP.method(pk.symplectic_euler), 1),
-    "SV": (TOP, TOP.method(pk.stormer_verlet), 2),
-    "SV Cayley": (TOP, TOP.method(pk.stormer_verlet, pk.Cayley()), 2),
-    "Lobatto 4": (TOP, TOP.method(pk.lobatto_iiia_iiib4), 4),
-    "Symmetrized SV": (TOP, pk.Symmetrized(TOP.method(pk.stormer_verlet)), 2),
-    "Symmetrized SV ∘ triple jump": (TOP, pk.Composition(pk.Symmetrized(TOP.method(pk.stormer_verlet)), pk.yoshida_triple_jump), 4),
-    "SV on G×g": (TOP_ON_G_X_G, TOP_ON_G_X_G.method(pk.stormer_verlet), 2),
-    "Lobatto 4 on G×g": (TOP_ON_G_X_G, TOP_ON_G_X_G.method(pk.lobatto_iiia_iiib4), 4),
-}
-
-
-@pytest.mark.parametrize("name", ORDERS, ids=list(ORDERS))
-def test_empirical_order(name):
-    scene, method, order = ORDERS[name]
-    t_end = 2.0
-    slope, errors = scene_order(method, scene, Y0, ASYMMETRIC, t_end, [20, 40, 80, 160], reference=_reference(t_end, ASYMMETRIC)[-1])
-    assert abs(slope - order) < 0.2, (slope, errors)
 
 
 def _quarters(method, args, h=0.05, t_end=500.0):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import final_state_by_steps, max_leaf_difference, scene_order, scene_reference
+from helpers import max_leaf_difference
 from prkmk_jax.exact_flows import rotated_array, rotated_rows
 from prkmk_jax.groups import sincos
 from prkmk_jax.scenes import (
@@ -112,51 +112,6 @@ def test_an_axis_rotation_is_the_bundle_group_action(coordinates):
         u = h * y0.fiber[axis] / INERTIA[axis] * jnp.eye(3)[axis]
         expected = FREE.bundle.apply(coordinates, (u, None), y0, "body")
         assert max_leaf_difference(moved, expected) < 1e-15
-
-
-ORDER_RUNS = {  # name: (coefficients, steps per unit of time), where the error is asymptotic and above round-off
-    "Strang": (None, [10, 20, 40, 80]),
-    "Suzuki 5": (pk.suzuki_5, [5, 10, 20, 40]),
-    "Kahan-Li 6": (pk.kahan_li_6, [4, 6, 8, 12]),
-    "Kahan-Li 8": (pk.kahan_li_8, {"free body": [4, 5, 6, 8], "heavy top": [6, 8, 10, 12]}),
-}
-
-
-@pytest.mark.parametrize("run", list(ORDER_RUNS))
-@pytest.mark.parametrize("name", ["free body", "heavy top"])
-def test_empirical_order(name, run):
-    """The largest error at t = 1, 2, …, 6 against DOP853: a high-order
-    composition's error at one time rises and falls with the phase, its
-    envelope over several times falls as h^p."""
-    scene, y0, args = CASES[name]
-    coefficients, steps = ORDER_RUNS[run]
-    steps = steps[name] if isinstance(steps, dict) else steps
-    method = scene.splitting(coefficients)
-    times = np.arange(1.0, 7.0)
-    reference = scene_reference(scene, y0, times[-1], args, t_eval=times)
-    advance = final_state_by_steps(method, scene)  # the scenes are autonomous: each unit of time starts at t = 0
-    errors = []
-    for n in steps:
-        y, worst = y0, 0.0
-        for expected in reference:
-            y, ok = advance(y, 1.0 / n, n, args)
-            assert ok
-            worst = max(worst, float(np.max(np.abs(np.asarray(scene.to_embedding(y)) - expected))))
-        errors.append(worst)
-    slope = np.polyfit(np.log(1.0 / np.asarray(steps)), np.log(errors), 1)[0]
-    assert abs(slope - method.order) < 0.2, (slope, errors)
-
-
-@pytest.mark.parametrize("name", ["forced body", "symmetric body", "free body on G×g"])
-@pytest.mark.parametrize("coordinates", [pk.Exp(), pk.Cayley()], ids=["exp", "cayley"])
-def test_order_on_the_other_scenes(name, coordinates):
-    scene, y0, args = CASES[name]
-    t_end = 2.0
-    reference = scene_reference(scene, y0, t_end, args)[-1]
-    for coefficients in (None, pk.suzuki_5):
-        method = scene.splitting(coefficients, coordinates)
-        slope, errors = scene_order(method, scene, y0, args, t_end, [20, 40, 80], reference=reference)
-        assert abs(slope - method.order) < 0.2, (coefficients, slope, errors)
 
 
 @pytest.mark.parametrize("name", ["free body", "heavy top", "forced body", "symmetric body"])

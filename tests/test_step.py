@@ -12,7 +12,7 @@ import optimistix as optx
 import pytest
 
 import prkmk_jax as pk
-from helpers import INERTIA, empirical_order, initial_state, max_leaf_difference, random_rotation, rigid_body_field
+from helpers import INERTIA, initial_state, max_leaf_difference, random_rotation, rigid_body_field
 from prkmk_jax.methods.stage_plan import Implicit
 
 H = 0.1
@@ -123,82 +123,6 @@ def test_classical_prk_on_vector_space(tab, layout, coords):
     q1, p1 = _classical_prk(tab, q0, p0, 0.3, 0.2, 0.7)
     np.testing.assert_allclose(y1.base.value, q1, atol=1e-13)
     np.testing.assert_allclose(y1.fiber.value, p1, atol=1e-13)
-
-
-# --- empirical order on the free rigid body -------------------------------------------
-REPRESENTATIONS = {
-    "direct": pk.DirectProduct(pk.SO3),
-    "semidirect-left": pk.Semidirect(pk.SO3, "left"),
-    "semidirect-right": pk.Semidirect(pk.SO3, "right"),
-    "cotangent": pk.Cotangent(pk.SO3),
-    "cartesian": pk.Cartesian(pk.SO3),  # the symmetric rigid body (3.3)
-}
-
-# (t_end, step counts) per order, chosen in the asymptotic range: order-1
-# methods have large error constants. The symmetric rigid body (G×G) at order
-# 4 needs finer steps: with Cayley its local slopes over h = 1/10 … 1/80 are
-# 3.46, 3.71, 3.85 (pre-asymptotic), over h = 1/40 … 1/320 they are ≥ 3.85.
-GRIDS = {1: (0.5, (200, 400, 800, 1600)), 2: (1.0, (40, 80, 160, 320)), 4: (1.0, (10, 20, 40, 80)), 6: (1.0, (8, 16, 32))}
-CARTESIAN_GRIDS = {4: (1.0, (40, 80, 160, 320)), 6: (1.0, (5, 10, 20))}
-# Lobatto IIIA–IIIB 6 with Exp()'s default truncation on the left-trivialised
-# bundles, where the free body has η ≡ 0: the error falls as h^6.9 (h^7.2 at
-# T = 2), its h⁶ term all but cancelled; the exact dexp⁻¹ shows h⁶
-# (test_empirical_order_exact_dexp_inv, tests/test_composed.py).
-AT_LEAST_DECLARED = {("semidirect-left", "Exp", 6), ("cotangent", "Exp", 6)}
-
-
-def _assert_declared_order(rep, coords, tab, form):
-    method = pk.PRKMK(REPRESENTATIONS[rep], coords, tab, form=form)
-    t_end, steps = CARTESIAN_GRIDS[tab.order] if (rep == "cartesian" and tab.order in CARTESIAN_GRIDS) else GRIDS[tab.order]
-    slope, errs = empirical_order(method, t_end=t_end, steps=steps)
-    if (rep, type(coords).__name__, tab.order) in AT_LEAST_DECLARED and form == "body":
-        assert slope >= tab.order - 0.15, (slope, errs)
-    else:
-        assert abs(slope - tab.order) <= 0.15, (slope, errs)
-
-
-COORDINATES = (pk.Exp(), pk.Cayley())
-# Every tableau on every bundle, the coordinates alternating so that each
-# tableau and each bundle meets both maps (pairs of the three factors
-# covered, not their product).
-BODY_FORM_CASES = [
-    (tab, rep, COORDINATES[(i + j) % 2]) for i, tab in enumerate(pk.tableaus.ALL_TABLEAUS) for j, rep in enumerate(REPRESENTATIONS)
-]
-SPACE_FORM_CASES = [
-    (tab, rep, coords) for rep in REPRESENTATIONS for tab, coords in zip((pk.stormer_verlet, pk.lobatto_iiia_iiib4), COORDINATES)
-]
-
-
-def _case_id(case):
-    tab, rep, coords = case
-    return f"{tab.name}-{rep}-{type(coords).__name__.lower()}"
-
-
-@pytest.mark.parametrize("tab, rep, coords", BODY_FORM_CASES, ids=[_case_id(c) for c in BODY_FORM_CASES])
-def test_empirical_order_body_form(tab, rep, coords):
-    _assert_declared_order(rep, coords, tab, "body")
-
-
-@pytest.mark.parametrize("tab, rep, coords", SPACE_FORM_CASES, ids=[_case_id(c) for c in SPACE_FORM_CASES])
-def test_empirical_order_space_form(tab, rep, coords):
-    _assert_declared_order(rep, coords, tab, "space")
-
-
-@pytest.mark.parametrize("tab", pk.tableaus.ALL_TABLEAUS, ids=lambda t: t.name)
-def test_empirical_order_exact_dexp_inv(tab):
-    """The exact dexp⁻¹ gives the same order as the truncated default."""
-    method = pk.PRKMK(pk.Semidirect(pk.SO3, "right"), pk.Exp(truncation=None), tab, form="body")
-    t_end, steps = GRIDS[tab.order]
-    slope, errs = empirical_order(method, t_end=t_end, steps=steps)
-    assert abs(slope - tab.order) <= 0.15, (slope, errs)
-
-
-def test_too_short_truncation_loses_order():
-    """Order 4 needs ad² in dexp⁻¹ (auto truncation q = 2); with q = 0 the
-    Lobatto pair drops to order 2 — the truncation rule is not vacuous."""
-    method = pk.PRKMK(pk.DirectProduct(pk.SO3), pk.Exp(truncation=0), pk.lobatto_iiia_iiib4, form="body")
-    slope, errs = empirical_order(method, t_end=1.0, steps=(10, 20, 40, 80))
-    assert abs(slope - 2) < 0.3, (slope, errs)
 
 
 # --- starting guesses of the implicit stages -------------------------------------------
