@@ -1,5 +1,5 @@
-"""PRKMK inside diffrax.diffeqsolve: equality with the scan integrator,
-on-group dense output and its order, adjoints, batches and errors."""
+"""PRKMK inside diffrax.diffeqsolve: on-group dense output and its order,
+adjoints, batches and errors (its steps are integrate's: test_drivers.py)."""
 
 import diffrax
 import equinox as eqx
@@ -22,18 +22,6 @@ def _method(tab=pk.stormer_verlet, **kw):
 
 def _solve(method, t1, dt, y0, args=jnp.asarray(INERTIA), **kw):
     return diffrax.diffeqsolve(TERM, pk.PRKMKSolver(method), 0.0, t1, dt, y0, args, **kw)
-
-
-@pytest.mark.parametrize("tab", pk.tableaus.ALL_TABLEAUS, ids=lambda t: t.name)
-def test_fixed_steps_equal_the_scan_integrator(tab):
-    y0 = initial_state(COTANGENT)
-    method = _method(tab)
-    sol = jax.jit(lambda y: _solve(method, 1.0, 0.02, y, saveat=diffrax.SaveAt(steps=True)))(y0)
-    traj = pk.integrate(method, FIELD, y0, 0.0, 0.02, 50, jnp.asarray(INERTIA))
-    n = int(sol.stats["num_steps"])
-    assert n == 50
-    np.testing.assert_allclose(sol.ys.fiber[:n], traj.ys.fiber[1:], rtol=0, atol=1e-13)
-    np.testing.assert_allclose(sol.ys.base.matrix[:n], traj.ys.base.matrix[1:], rtol=0, atol=1e-13)
 
 
 def test_non_autonomous_field_and_step_to():

@@ -1,0 +1,43 @@
+"""The drivers agree, the one home of that claim: `diffrax.diffeqsolve` with
+`PRKMKTerm` and `PRKMKSolver(method)` at constant steps takes `integrate`'s
+steps, for every kind of method (each PRKMK tableau, a composition, a
+symmetrised method, an adjoint, the splittings) and through a time-dependent
+field."""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import prkmk_jax as pk
+from helpers import INERTIA, initial_state
+from prkmk_jax.scenes import ForcedParameters, ForcedRigidBody, FreeRigidBody, HarmonicTorque, HeavyTop, TopParameters
+
+FREE, TOP, FORCED = FreeRigidBody(), HeavyTop(), ForcedRigidBody()
+ARGS = jnp.asarray(INERTIA)
+TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
+FORCED_ARGS = ForcedParameters(ARGS, HarmonicTorque(jnp.array([0.3, 0.2, 0.1]), jnp.array([1.0, 2.0, 3.0]), jnp.array([0.0, 0.5, 1.0])))
+SV = FREE.method(pk.stormer_verlet)
+
+KINDS = {  # name: (scene, method, args)
+    **{f"PRKMK {tab.name}": (FREE, FREE.method(tab), ARGS) for tab in pk.tableaus.ALL_TABLEAUS},
+    "Composition of SV": (FREE, pk.Composition(SV, pk.kahan_li_6), ARGS),
+    "Symmetrized Lobatto 4": (FREE, pk.Symmetrized(FREE.method(pk.lobatto_iiia_iiib4)), ARGS),
+    "Adjoint of SV": (FREE, pk.Adjoint(SV), ARGS),
+    "splitting, free body": (FREE, FREE.splitting(pk.suzuki_5), ARGS),
+    "splitting, heavy top": (TOP, TOP.splitting(), TOP_ARGS),
+    "forced body (time-dependent), Lobatto 4": (FORCED, FORCED.method(pk.lobatto_iiia_iiib4), FORCED_ARGS),
+}
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_diffeqsolve_at_constant_steps_takes_integrates_steps(kind):
+    scene, method, args = KINDS[kind]
+    y0, t0, dt, n = initial_state(pk.Cotangent(pk.SO3)), 0.3, 0.02, 50
+    sol = diffrax.diffeqsolve(pk.PRKMKTerm(scene), pk.PRKMKSolver(method), t0, t0 + n * dt, dt, y0, args, saveat=diffrax.SaveAt(steps=True))
+    traj = pk.integrate(method, scene, y0, t0, dt, n, args)
+    assert int(sol.stats["num_steps"]) == n
+    for a, b in zip(jax.tree.leaves(jax.tree.map(lambda a: a[:n], sol.ys)), jax.tree.leaves(jax.tree.map(lambda a: a[1:], traj.ys))):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(sol.ts[:n], traj.ts[1:], rtol=0, atol=1e-14)
