@@ -215,13 +215,13 @@ for split_name, (coefficients, steps) in SPLITTINGS.items():
         CASES[f"splitting {split_name}, {scene_name}"] = Case(
             method, _scene(scene, y0, args), tuple(np.arange(1.0, 7.0)), steps[scene_name], method.order, below=0.2, above=0.2
         )
-for scene_name in ("forced body", "symmetric body", "free body on G×g"):
+for k, scene_name in enumerate(("forced body", "symmetric body", "free body on G×g")):
     scene, y0, args = SCENES[scene_name]
-    for coords in COORDINATES:
-        for coefficients in (None, pk.suzuki_5):
-            method = scene.splitting(coefficients, coords)
-            name = f"splitting {'Strang' if coefficients is None else 'Suzuki 5'}, {scene_name}, {type(coords).__name__}"
-            CASES[name] = Case(method, _scene(scene, y0, args), (2.0,), (20, 40, 80), method.order, below=0.2, above=0.2)
+    # Each scene with both orders and both maps, the pairing alternating from scene to scene.
+    for coefficients, coords in zip((None, pk.suzuki_5), COORDINATES[:: 1 if k % 2 == 0 else -1]):
+        method = scene.splitting(coefficients, coords)
+        name = f"splitting {'Strang' if coefficients is None else 'Suzuki 5'}, {scene_name}, {type(coords).__name__}"
+        CASES[name] = Case(method, _scene(scene, y0, args), (2.0,), (20, 40, 80), method.order, below=0.2, above=0.2)
 
 # --- the heavy top ---------------------------------------------------------------------------
 HEAVY_TOP = {  # name: (scene, method)
@@ -275,11 +275,11 @@ for bundle_name, bundle in (("semidirect", pk.Semidirect(pk.SOn, "left")), ("dir
         lambda y: np.concatenate([np.ravel(y.base.matrix), np.ravel(y.fiber)]),
         _so4_reference,
     )
-    for tab in (pk.stormer_verlet, pk.lobatto_iiia_iiib4):
-        for coords in COORDINATES:
-            steps = (10, 20, 40, 80) if tab.order == 4 else (40, 80, 160, 320)
-            name = f"SO(4), {bundle_name}, {tab.name}, {type(coords).__name__}"
-            CASES[name] = Case(pk.PRKMK(bundle, coords, tab, form="body"), problem, (1.0,), steps, tab.order)
+    # Each bundle with both tableaus and both maps; each tableau with both maps over the two bundles.
+    for tab, coords in zip((pk.stormer_verlet, pk.lobatto_iiia_iiib4), COORDINATES[:: 1 if bundle_name == "direct" else -1]):
+        steps = (10, 20, 40, 80) if tab.order == 4 else (40, 80, 160, 320)
+        name = f"SO(4), {bundle_name}, {tab.name}, {type(coords).__name__}"
+        CASES[name] = Case(pk.PRKMK(bundle, coords, tab, form="body"), problem, (1.0,), steps, tab.order)
 
 
 # --- a time-dependent field: the forced pendulum q' = p, p' = −sin q + 0.3 cos(2t) on ℝ×ℝ ---------
