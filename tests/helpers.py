@@ -8,10 +8,16 @@ import jax.numpy as jnp
 import numpy as np
 
 import prkmk_jax as pk
-from prkmk_jax.scenes import FreeRigidBody, SymmetricRigidBody
+from prkmk_jax.scenes import ForcedParameters, FreeRigidBody, HarmonicTorque, SymmetricRigidBody, TopParameters
 from prkmk_jax.scenes.rigid_body import random_rotation, symmetric_initial_state
 
 INERTIA = np.array([7 / 8, 5 / 8, 1 / 4])
+TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
+"""The heavy top of the tests: principal moments and lever ℓ = m g χ."""
+FORCED_ARGS = ForcedParameters(
+    jnp.asarray(INERTIA), HarmonicTorque(jnp.array([0.3, 0.2, 0.1]), jnp.array([1.0, 2.0, 3.0]), jnp.array([0.0, 0.5, 1.0]))
+)
+"""The forced body of the tests: the paper's inertia and a harmonic torque."""
 M0 = np.array([0.250, 0.625, 0.875])
 
 
@@ -88,16 +94,16 @@ def scene_reference(scene, y0, t_end, args, t_eval=None) -> np.ndarray:
 
 
 def final_state_by_steps(method: pk.AbstractMethod, field):
-    """A jitted (y0, dt, n, args) -> (y after n steps of `method.step` from
-    (0, y0), whether every step's implicit stages converged). dt and n are
-    traced: one compiled program serves every step size of a convergence
-    test."""
+    """A jitted (y0, dt, n, args, t0=0) -> (y after n steps of `method.step`
+    from (t0, y0), whether every step's implicit stages converged). dt, n and
+    t0 are traced: one compiled program serves every step size of a
+    convergence test."""
 
     @jax.jit
-    def run(y0, dt, n, args):
+    def run(y0, dt, n, args, t0=0.0):
         def one_step(i, carry):
             y, converged = carry
-            step = method.step(field, i * dt, y, dt, args)
+            step = method.step(field, t0 + i * dt, y, dt, args)
             y, result = step.y, step.result
             return y, converged & (result == pk.RESULTS.successful)
 

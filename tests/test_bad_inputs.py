@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import INERTIA, PositiveReals, initial_state, rigid_body_field
+from helpers import INERTIA, TOP_ARGS, PositiveReals, initial_state, rigid_body_field
 from prkmk_jax.scenes import ForcedParameters, ForcedRigidBody, FreeRigidBody, HeavyTop, SphericalTop, SymmetricRigidBody, TopParameters
 
 COTANGENT = pk.Cotangent(pk.SO3)
@@ -32,7 +32,6 @@ def _diffeqsolve(y0=GOOD, term=None, solver=None, args=ARGS, **kw):
 
 
 TOP = HeavyTop()
-TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
 TOP_ON_G_X_G_METHOD = HeavyTop(pk.DirectProduct(pk.SO3)).method(pk.stormer_verlet)
 FREE_BODY = FreeRigidBody()
 SYMMETRIC_SO4 = SymmetricRigidBody(pk.Cartesian(pk.SOn))

@@ -11,13 +11,11 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import INERTIA, initial_state
-from prkmk_jax.scenes import ForcedParameters, ForcedRigidBody, FreeRigidBody, HarmonicTorque, HeavyTop, TopParameters
+from helpers import FORCED_ARGS, INERTIA, TOP_ARGS, initial_state
+from prkmk_jax.scenes import ForcedRigidBody, FreeRigidBody, HeavyTop
 
 FREE, TOP, FORCED = FreeRigidBody(), HeavyTop(), ForcedRigidBody()
 ARGS = jnp.asarray(INERTIA)
-TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
-FORCED_ARGS = ForcedParameters(ARGS, HarmonicTorque(jnp.array([0.3, 0.2, 0.1]), jnp.array([1.0, 2.0, 3.0]), jnp.array([0.0, 0.5, 1.0])))
 SV = FREE.method(pk.stormer_verlet)
 
 KINDS = {  # name: (scene, method, args)

@@ -11,10 +11,9 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import INERTIA, initial_state, max_leaf_difference, rigid_body_field
+from helpers import INERTIA, TOP_ARGS, initial_state, max_leaf_difference, rigid_body_field
 from prkmk_jax.scenes import FreeRigidBody, HeavyTop, TopParameters, random_rotation
 
-TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
 TOP_Y0 = pk.BundleElement(pk.SO3(jnp.asarray(random_rotation(5))), jnp.array([0.3, -0.4, 1.5]))
 TOPS = {"cotangent": HeavyTop(), "direct product": HeavyTop(pk.DirectProduct(pk.SO3))}
 COORDINATES = {"cayley": pk.Cayley(), "exp": pk.Exp()}

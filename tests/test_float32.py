@@ -10,14 +10,13 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import INERTIA, initial_state, max_leaf_difference
+from helpers import INERTIA, TOP_ARGS, initial_state, max_leaf_difference
 from prkmk_jax.groups._util import orthogonality_defect
-from prkmk_jax.scenes import FreeRigidBody, HeavyTop, SymmetricRigidBody, TopParameters
+from prkmk_jax.scenes import FreeRigidBody, HeavyTop, SymmetricRigidBody
 from prkmk_jax.scenes.rigid_body import symmetric_initial_state
 
 COTANGENT, CARTESIAN = pk.Cotangent(pk.SO3), pk.Cartesian(pk.SO3)
 FREE, TOP, SYMMETRIC = FreeRigidBody(), HeavyTop(), SymmetricRigidBody()
-TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
 SV = pk.PRKMK(COTANGENT, pk.Exp(), pk.stormer_verlet, form="body")
 STEPS, H = 400, 0.01
 EPS32 = float(jnp.finfo(jnp.float32).eps)

@@ -10,7 +10,6 @@ splittings; the heavy top; SO(4); a time-dependent field on ℝ×ℝ."""
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -18,15 +17,22 @@ from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 
 import prkmk_jax as pk
-from helpers import initial_state, reference, rigid_body_field, scene_reference, state_vector
+from helpers import (
+    FORCED_ARGS,
+    INERTIA,
+    TOP_ARGS,
+    final_state_by_steps,
+    initial_state,
+    reference,
+    rigid_body_field,
+    scene_reference,
+    state_vector,
+)
 from prkmk_jax.scenes import (
-    ForcedParameters,
     ForcedRigidBody,
     FreeRigidBody,
-    HarmonicTorque,
     HeavyTop,
     SymmetricRigidBody,
-    TopParameters,
     random_rotation,
     symmetric_initial_state,
 )
@@ -60,7 +66,7 @@ def _rigid_body(bundle, form="body") -> Problem:
     return Problem(
         rigid_body_field(bundle, form),
         y0,
-        jnp.asarray([7 / 8, 5 / 8, 1 / 4]),
+        jnp.asarray(INERTIA),
         lambda y: state_vector(bundle, y),
         lambda times: reference(bundle, y0, times[-1], t_eval=times),
     )
@@ -80,16 +86,17 @@ def _state(seed, momentum=(0.25, 0.625, 0.875)):
     return pk.BundleElement(pk.SO3(jnp.asarray(random_rotation(seed))), jnp.asarray(momentum))
 
 
-INERTIA = jnp.array([7 / 8, 5 / 8, 1 / 4])
-TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
-FORCED_ARGS = ForcedParameters(INERTIA, HarmonicTorque(jnp.array([0.3, 0.2, 0.1]), jnp.array([1.0, 2.0, 3.0]), jnp.array([0.0, 0.5, 1.0])))
 TOP, TOP_ON_G_X_G = HeavyTop(), HeavyTop(pk.DirectProduct(pk.SO3))
 SCENES = {  # name: (scene, y0, args)
-    "free body": (FreeRigidBody(), _state(0), INERTIA),
+    "free body": (FreeRigidBody(), _state(0), jnp.asarray(INERTIA)),
     "heavy top": (TOP, _state(5, (0.3, -0.4, 1.5)), TOP_ARGS),
     "forced body": (ForcedRigidBody(), _state(1), FORCED_ARGS),
-    "symmetric body": (SymmetricRigidBody(), symmetric_initial_state(random_rotation(0), np.array([0.25, 0.625, 0.875])), INERTIA),
-    "free body on G×g": (FreeRigidBody(pk.DirectProduct(pk.SO3)), _state(2), INERTIA),
+    "symmetric body": (
+        SymmetricRigidBody(),
+        symmetric_initial_state(random_rotation(0), np.array([0.25, 0.625, 0.875])),
+        jnp.asarray(INERTIA),
+    ),
+    "free body on G×g": (FreeRigidBody(pk.DirectProduct(pk.SO3)), _state(2), jnp.asarray(INERTIA)),
 }
 CASES: dict[str, Case] = {}
 
@@ -307,34 +314,18 @@ for tab in pk.tableaus.ALL_TABLEAUS:  # time enters through c_first
     CASES[f"time-dependent, {tab.name}"] = Case(pk.PRKMK(pk.Cartesian(pk.VectorSpace), pk.Exp(), tab), PENDULUM, (1.4,), steps, tab.order)
 
 
-def _steps_from(method, field):
-    """(y0, t0, dt, n, args) -> (y after n steps from t0, whether every implicit
-    stage converged); one compiled program serves every step size."""
-
-    @jax.jit
-    def run(y0, t0, dt, n, args):
-        def one_step(i, carry):
-            y, converged = carry
-            step = method.step(field, t0 + i * dt, y, dt, args)
-            return step.y, converged & (step.result == pk.RESULTS.successful)
-
-        return jax.lax.fori_loop(0, n, one_step, (y0, jnp.array(True)))
-
-    return run
-
-
 @pytest.mark.parametrize("name", CASES)
 def test_declared_order(name):
     method, problem, times, steps, order, below, above = CASES[name]
     times = np.asarray(times)
     interval = times[0] - problem.t0
     expected = problem.reference(times)
-    run = _steps_from(method, problem.field)
+    run = final_state_by_steps(method, problem.field)
     errors = []
     for n in steps:
         y, t, worst = problem.y0, problem.t0, 0.0
         for row, end in zip(expected, times):
-            y, converged = run(y, jnp.asarray(t), jnp.asarray(interval / n), n, problem.args)
+            y, converged = run(y, jnp.asarray(interval / n), n, problem.args, jnp.asarray(t))
             assert converged
             worst, t = max(worst, float(np.max(np.abs(problem.embed(y) - row)))), end
         errors.append(worst)

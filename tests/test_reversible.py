@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
+from helpers import FORCED_ARGS, TOP_ARGS
 from prkmk_jax.methods.adjoint import AbstractMadeOfSteps
-from prkmk_jax.scenes import ForcedParameters, ForcedRigidBody, FreeRigidBody, HarmonicTorque, HeavyTop, TopParameters, random_rotation
+from prkmk_jax.scenes import ForcedRigidBody, FreeRigidBody, HeavyTop, random_rotation
 
 FREE, TOP = FreeRigidBody(), HeavyTop()
 INERTIA = jnp.array([7 / 8, 5 / 8, 1 / 4])
-TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
 Y0 = pk.BundleElement(pk.SO3(jnp.asarray(random_rotation(5))), jnp.array([0.25, 0.625, 0.875]))
 H = 0.05
 
@@ -201,7 +201,6 @@ def _solve_loss(method, field, t1, dt0, adjoint):
 
 
 FORCED = ForcedRigidBody()
-FORCED_ARGS = ForcedParameters(INERTIA, HarmonicTorque(jnp.array([0.3, 0.2, 0.1]), jnp.array([1.0, 2.0, 3.0]), jnp.array([0.0, 0.5, 1.0])))
 SOLVE_CASES = {  # a PRKMK method and a splitting; the methods' own undoing is tested above
     "heavy top, splitting": (TOP, TOP.splitting(), TOP_ARGS),
     "forced body (time-dependent), PRKMK SV": (FORCED, FORCED.method(pk.stormer_verlet), FORCED_ARGS),

@@ -10,14 +10,12 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import max_leaf_difference
+from helpers import FORCED_ARGS, TOP_ARGS, max_leaf_difference
 from prkmk_jax.exact_flows import rotated_array, rotated_rows
 from prkmk_jax.groups import sincos
 from prkmk_jax.scenes import (
-    ForcedParameters,
     ForcedRigidBody,
     FreeRigidBody,
-    HarmonicTorque,
     HeavyTop,
     SymmetricRigidBody,
     TopParameters,
@@ -31,8 +29,6 @@ FREE = FreeRigidBody()
 TOP = HeavyTop()
 FORCED = ForcedRigidBody()
 SYMMETRIC = SymmetricRigidBody()
-TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
-FORCED_ARGS = ForcedParameters(INERTIA, HarmonicTorque(jnp.array([0.3, 0.2, 0.1]), jnp.array([1.0, 2.0, 3.0]), jnp.array([0.0, 0.5, 1.0])))
 
 
 def _state(seed, momentum=MOMENTUM):

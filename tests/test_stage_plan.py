@@ -9,11 +9,10 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import INERTIA, initial_state, rigid_body_field, scene_order, scene_reference
+from helpers import INERTIA, TOP_ARGS, initial_state, rigid_body_field, scene_order, scene_reference
 from prkmk_jax.methods.stage_plan import COUPLED, Explicit, Implicit, StageDependence, output_dependence, plan_stages
 from prkmk_jax.scenes import FreeRigidBody, HeavyTop, SphericalTop, SymmetricRigidBody, TopParameters, random_rotation
 
-TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
 SPHERICAL_ARGS = TopParameters(jnp.array(0.7), jnp.array([0.1, 0.2, 0.9]))
 
 
