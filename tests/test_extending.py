@@ -3,7 +3,6 @@ written here, outside the package, run through every bundle, both drivers
 and the splitting methods with nothing else changed (CONTRIBUTING,
 "Adding a coordinate map", "Adding a base group")."""
 
-from functools import partial
 from typing import ClassVar
 
 import diffrax
@@ -17,7 +16,6 @@ from test_groups import bundle_algebra, tangent_to_algebra
 
 import prkmk_jax as pk
 from helpers import empirical_order, max_leaf_difference, scene_order
-from prkmk_jax.coordinates import dual_number_inverse_differential
 from prkmk_jax.groups import AbstractRotationGroup
 from prkmk_jax.scenes import FreeRigidBody, random_rotation
 
@@ -25,8 +23,9 @@ from prkmk_jax.scenes import FreeRigidBody, random_rotation
 # --- a coordinate map: φ(u) = cay(u/2)², on SO(3) ------------------------------------------
 class SquaredHalfCayley(pk.AbstractCoordinates):
     """φ(u) = cay(u/2)²: a fourth-order rational approximation of exp (it
-    turns by 4·atan(θ/4)), with φ(−u) = φ(u)⁻¹. On G ⋉ 𝔤 it is lifted by
-    its tangent map, ψ_{σu} = dφ_{σu}."""
+    turns by 4·atan(θ/4)), with φ(−u) = φ(u)⁻¹. It says φ, φ⁻¹ and dφ⁻¹
+    only: the action, the changes, the planar rotation of the splittings and
+    the tangent lift to G ⋉ 𝔤 (ψ_{σu} = dφ_{σu}) are the defaults."""
 
     truncation: None = eqx.field(static=True, default=None)
     maps_lines_to_subgroups: ClassVar[bool] = False
@@ -34,9 +33,6 @@ class SquaredHalfCayley(pk.AbstractCoordinates):
     def check_group(self, group):
         if group is not pk.SO3:
             raise TypeError(f"SquaredHalfCayley is written for SO3 only, got {group.__name__}.")
-
-    def resolve_truncation(self, method_order):
-        return None
 
     def group_map(self, group, u):
         half = group.cayley(0.5 * u)
@@ -46,44 +42,11 @@ class SquaredHalfCayley(pk.AbstractCoordinates):
         root = type(g).exp(0.5 * g.log())
         return 2.0 * root.cayley_inverse()
 
-    def group_differential(self, group, u, v):
-        # φ = c², c = cay(u/2): dφ_u(v) = δ + Ad_c δ with δ = dcay_{u/2}(v/2).
-        delta = group.dcayley(0.5 * u, 0.5 * v)
-        return delta + group.cayley_adjoint(0.5 * u, delta)
-
     def group_inverse_differential(self, group, u, x):
         rotation = group.cayley(0.5 * u).matrix
         eye = jnp.broadcast_to(jnp.eye(3, dtype=rotation.dtype), rotation.shape)
         z = jnp.linalg.solve(eye + rotation, x[..., None])[..., 0]  # (I + Ad_c)⁻¹ x
         return 2.0 * group.dcayley_inv(0.5 * u, z)
-
-    def group_adjoint(self, group, u, x, sign):
-        g = self.group_map(group, u)
-        return g.adjoint(x) if sign > 0 else g.inverse().adjoint(x)
-
-    def group_map_change(self, group, u):
-        # c² − I = 2C + C² with C = c − I, the identity kept out.
-        change = group.cayley_change(0.5 * u)
-        return 2.0 * change + change @ change
-
-    def group_adjoint_change(self, group, u, x, sign):
-        # Ad_g x − x = (g − I) x on SO(3)'s vectors, and φ(u)⁻¹ = φ(−u).
-        return jnp.einsum("...ij,...j->...i", self.group_map_change(group, sign * u), x)
-
-    def fiber_map(self, group, u, v, sign):
-        return self.group_differential(group, sign * u, v)
-
-    def fiber_map_inverse(self, group, u, w, sign):
-        return self.group_inverse_differential(group, sign * u, w)
-
-    def semidirect_inverse_differential(self, group, sign, U, X):
-        return dual_number_inverse_differential(partial(self.group_inverse_differential, group), U, X)
-
-    def planar_rotation(self, angle):
-        # cay(aE/2) turns by 2·atan(a/4); its square by twice that.
-        quarter = (0.5 * angle) ** 2 / 4.0
-        sine, cosine = 0.5 * angle / (1.0 + quarter), (1.0 - quarter) / (1.0 + quarter)
-        return 2.0 * sine * cosine, cosine * cosine - sine * sine
 
 
 TOY_MAP = SquaredHalfCayley()
@@ -170,67 +133,21 @@ class SO2(AbstractRotationGroup):
     def adjoint(self, u):
         return u
 
-    def algebra_zeros(self):
-        return jnp.zeros(self.matrix.shape[:-2] + (1,), self.matrix.dtype)
-
     @classmethod
     def bracket(cls, u, v):
         return jnp.zeros_like(v)
-
-    @classmethod
-    def dexp(cls, u, v):
-        return v
-
-    @classmethod
-    def dexp_inv(cls, u, v):
-        return v
-
-    @classmethod
-    def exp_adjoint(cls, u, x):
-        return x
-
-    @classmethod
-    def exp_change(cls, u):
-        # cos u − 1 = −2 sin²(u/2), which does not cancel.
-        half = jnp.sin(0.5 * u)
-        return cls._turn(jnp.sin(u), -2.0 * half * half).matrix
-
-    @classmethod
-    def exp_adjoint_change(cls, u, x):
-        return jnp.zeros_like(x)
 
     @classmethod
     def cayley(cls, u):
         quarter = 0.25 * u * u
         return cls._turn(u / (1.0 + quarter), (1.0 - quarter) / (1.0 + quarter))
 
-    @classmethod
-    def cayley_change(cls, u):
-        quarter = 0.25 * u * u
-        return cls._turn(u / (1.0 + quarter), -2.0 * quarter / (1.0 + quarter)).matrix
-
-    @classmethod
-    def cayley_adjoint_change(cls, u, x):
-        return jnp.zeros_like(x)
-
     def cayley_inverse(self):
         return 2.0 * self.matrix[..., 1, 0:1] / (1.0 + self.matrix[..., 0, 0:1])
 
     @classmethod
-    def dcayley(cls, u, v):
-        return v / (1.0 + 0.25 * u * u)
-
-    @classmethod
     def dcayley_inv(cls, u, v):
         return v * (1.0 + 0.25 * u * u)
-
-    @classmethod
-    def cayley_adjoint(cls, u, x):
-        return x
-
-    @classmethod
-    def inverse_shifted_ad(cls, u, v, alpha):
-        return v
 
 
 def _pendulum(t, y, args):
@@ -247,8 +164,10 @@ def _pendulum_reference(theta0, p0, t_end):
 
 @pytest.mark.parametrize("coordinates", [pk.Exp(), pk.Cayley()], ids=["exp", "cayley"])
 def test_a_new_rotation_group_runs_the_pendulum_at_the_tableau_order(coordinates):
-    """SO(2) above holds only its algebra: the product, inverse, checks and
-    corrections come from `AbstractRotationGroup`, and both drivers run it."""
+    """SO(2) above holds only its algebra (seven methods): the product,
+    inverse, checks and corrections come from `AbstractRotationGroup`, the
+    differentials, actions and changes are the defaults, and both drivers
+    run it."""
     method = pk.PRKMK(pk.Cotangent(SO2), coordinates, pk.stormer_verlet, form="body")
     theta0, p0, t_end = 1.2, 0.3, 4.0
     y0 = pk.BundleElement(SO2.exp(jnp.array([theta0])), jnp.array([p0]))

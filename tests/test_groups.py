@@ -4,6 +4,7 @@ ones included)."""
 
 import math
 from fractions import Fraction
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -14,6 +15,7 @@ from jax.scipy.linalg import expm
 
 import prkmk_jax as pk
 from helpers import algebra_vectors, skew
+from prkmk_jax.groups import AbstractRotationGroup
 
 TOL = 1e-12
 
@@ -290,6 +292,65 @@ def test_inverse_shifted_ad_solves_the_linear_system(name, alpha, a, b):
     u, v = alg(a), alg(b)
     w = group.inverse_shifted_ad(u, v, alpha)
     _close(w + alpha * group.bracket(u, w), v, tol=1e-11)
+
+
+def _written_with_the_required_methods_only(group):
+    """A rotation group that delegates the seven methods a quadratic rotation
+    group must write to `group` and takes every other one from the defaults."""
+
+    class Plain(AbstractRotationGroup):
+        matrix: jax.Array
+        algebra_ndim: ClassVar[int] = group.algebra_ndim
+        bi_invariant_pairing: ClassVar[bool] = True
+
+        @classmethod
+        def exp(cls, u):
+            return cls(group.exp(u).matrix)
+
+        def log(self):
+            return group(self.matrix).log()
+
+        def adjoint(self, u):
+            return group(self.matrix).adjoint(u)
+
+        @classmethod
+        def bracket(cls, u, v):
+            return group.bracket(u, v)
+
+        @classmethod
+        def cayley(cls, u):
+            return cls(group.cayley(u).matrix)
+
+        def cayley_inverse(self):
+            return group(self.matrix).cayley_inverse()
+
+        @classmethod
+        def dcayley_inv(cls, u, v):
+            return group.dcayley_inv(u, v)
+
+    return Plain
+
+
+@pytest.mark.parametrize("name", ["SO3", "SO4"])
+def test_the_defaults_agree_with_the_closed_forms(name):
+    """What a group need not write (the differentials, the actions, the
+    changes, the fiber solve) agrees, on a batch, with the closed forms SO(3)
+    and SO(n) write for speed and rounding."""
+    group, alg = BASES[name]
+    plain = _written_with_the_required_methods_only(group)
+    rng = np.random.default_rng(3)
+    u = jnp.stack([alg(0.8 * rng.normal(size=6) / 3) for _ in range(2)])
+    x = jnp.stack([alg(rng.normal(size=6)) for _ in range(2)])
+    for method in ["dexp", "dexp_inv", "exp_adjoint", "exp_adjoint_change", "dcayley", "cayley_adjoint", "cayley_adjoint_change"]:
+        _close(getattr(plain, method)(u, x), getattr(group, method)(u, x), tol=1e-13)
+    _close(plain.inverse_shifted_ad(u, x, 0.5), group.inverse_shifted_ad(u, x, 0.5), tol=1e-13)
+    for method in ["exp_change", "cayley_change"]:
+        _close(getattr(plain, method)(u), getattr(group, method)(u), tol=1e-15)
+    g = group.exp(x)
+    change = group.exp_change(u)
+    for side in ["right", "left"]:
+        _close(plain(g.matrix).product_change(change, side).matrix, g.product_change(change, side).matrix, tol=1e-15)
+    assert plain(g.matrix).algebra_zeros().shape == g.algebra_zeros().shape
 
 
 def test_inverse_shifted_ad_and_exp_adjoint_broadcast_batches():

@@ -7,9 +7,11 @@ and on G ⋉ 𝔤 as
     f(u, v) = (φ(u), ψ_{σu} v),   σ = −1 (left trivialisation) or 1 (right),
 
 with φ the map on G and ψ a linear map of the fiber that the map chooses
-(`fiber_map`). A map therefore implements only what it is on G (the
-`group_*` methods, `fiber_map` and the inverse differential on G ⋉ 𝔤), and
-every bundle, present or future, uses it: adding a map is one new module.
+(`fiber_map`; by default the tangent lift ψ_{σu} = dφ_{σu}). A map
+therefore implements only what it is on G: φ, φ⁻¹ and dφ⁻¹ (three methods;
+the rest default, and a map overrides them for speed, for rounding, or for
+another fiber map), and every bundle, present or future, uses it: adding a
+map is one new module.
 A map knows groups, never bundles.
 
 Differentials are right-trivialised, df_U(V) = d/dt f(U + tV)·f(U)⁻¹;
@@ -19,13 +21,17 @@ side of the algebra equation U' = df⁻¹_U(ξ, η) of Algorithm 4.2.
 
 import abc
 from collections.abc import Callable
-from typing import Literal
+from functools import partial
+from typing import Any, Literal, cast
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 from jaxtyping import Array
 
-from ..groups.base import AbstractLieGroup
+from ..groups.base import AbstractLieGroup, solve_in_algebra
+from ..groups.so3 import SO3
+from ..groups.trig import computed_once
 
 Truncation = int | None | Literal["auto"]
 AlgebraPair = tuple[Array, Array]
@@ -45,15 +51,7 @@ class AbstractCoordinates(eqx.Module):
     one-parameter subgroup (the exponential does, the Cayley map does not).
     Consecutive sub-flows along one direction may then be merged."""
 
-    # --- what a map is on the base group G ---------------------------------------------
-    @abc.abstractmethod
-    def check_group(self, group: type[AbstractLieGroup]) -> None:
-        """Raise `TypeError` if the map does not exist on `group`."""
-
-    @abc.abstractmethod
-    def resolve_truncation(self, method_order: int) -> int | None:
-        """The truncation used with a method of this order (None = exact)."""
-
+    # --- what a map is on the base group G: every map says these ----------------------
     @abc.abstractmethod
     def group_map(self, group: type[AbstractLieGroup], u: Array) -> AbstractLieGroup:
         """φ(u) ∈ G."""
@@ -66,44 +64,66 @@ class AbstractCoordinates(eqx.Module):
     def group_inverse_differential(self, group: type[AbstractLieGroup], u: Array, x: Array) -> Array:
         """dφ⁻¹_u(x), exact (right-trivialised)."""
 
-    @abc.abstractmethod
+    # --- defaults, built from the above; a map overrides them for speed or rounding ----
+    def check_group(self, group: type[AbstractLieGroup]) -> None:
+        """Raise `TypeError` if the map does not exist on `group` (by default
+        it exists on every group)."""
+        del group
+
+    def resolve_truncation(self, method_order: int) -> int | None:
+        """The truncation used with a method of this order (None = exact,
+        the default)."""
+        del method_order
+
     def group_adjoint(self, group: type[AbstractLieGroup], u: Array, x: Array, sign: float) -> Array:
-        """Ad_{φ(u)} x (`sign` 1.0) or Ad_{φ(u)⁻¹} x (`sign` −1.0), computed
-        without forming φ(u) where the group allows: the fiber update of a
-        step on G ⋉ 𝔤 is this action, and φ(u) itself only enters the base."""
+        """Ad_{φ(u)} x (`sign` 1.0) or Ad_{φ(u)⁻¹} x (`sign` −1.0). A map
+        overrides it to act without forming φ(u) where the group allows:
+        the fiber update of a step on G ⋉ 𝔤 is this action, and φ(u) itself
+        only enters the base."""
+        g = self.group_map(group, u)
+        return (g if sign > 0 else g.inverse()).adjoint(x)
 
-    @abc.abstractmethod
-    def group_map_change(self, group: type[AbstractLieGroup], u: Array) -> Array:
-        """φ(u) − e in the array a `group` element holds, the identity kept
-        out (`AbstractLieGroup.exp_change`)."""
+    def group_map_change(self, group: type[AbstractLieGroup], u: Array) -> Any:
+        """φ(u) − e in the arrays a `group` element holds, ideally with the
+        identity kept out (`AbstractLieGroup.exp_change`)."""
+        return self.group_map(group, u).change_from_identity()
 
-    @abc.abstractmethod
     def group_adjoint_change(self, group: type[AbstractLieGroup], u: Array, x: Array, sign: float) -> Array:
-        """`group_adjoint` minus x: Ad_{φ(u)^{±1}} x − x, x kept out."""
+        """`group_adjoint` minus x: Ad_{φ(u)^{±1}} x − x, ideally with x kept out."""
+        return self.group_adjoint(group, u, x, sign) - x
 
-    @abc.abstractmethod
+    # The lift to G ⋉ 𝔤: by default the tangent lift ψ_{σu} = dφ_{σu}, valid
+    # for maps with φ(−u) = φ(u)⁻¹ (`dual_number_inverse_differential`). A map
+    # lifted otherwise (the Cayley map of §4.4) overrides all three.
     def fiber_map(self, group: type[AbstractLieGroup], u: Array, v: Array, sign: float) -> Array:
         """ψ_{σu} v with σ = `sign`, the fiber part of f(u, v) on G ⋉ 𝔤:
-        σ = −1.0 in left and 1.0 in right trivialisation (module docstring)."""
+        σ = −1.0 in left and 1.0 in right trivialisation (module docstring).
+        By default dφ_{σu} v, the inverse differential solved for v."""
+        inverse_differential = partial(self.group_inverse_differential, group)
+        return solve_in_algebra(inverse_differential, sign * u, v, group.algebra_ndim)
 
-    @abc.abstractmethod
     def fiber_map_inverse(self, group: type[AbstractLieGroup], u: Array, w: Array, sign: float) -> Array:
-        """ψ_{σu}⁻¹ w."""
+        """ψ_{σu}⁻¹ w (by default dφ⁻¹_{σu} w)."""
+        return self.group_inverse_differential(group, sign * u, w)
 
-    @abc.abstractmethod
     def semidirect_inverse_differential(self, group: type[AbstractLieGroup], sign: float, U: AlgebraPair, X: AlgebraPair) -> AlgebraPair:
         """Exact df⁻¹_U(X) on G ⋉ 𝔤 with σ = `sign` (−1.0 left, 1.0 right
-        trivialisation; `dual_number_inverse_differential` where
-        ψ_{σu} = dφ_{σu}, the tangent lift of φ)."""
+        trivialisation); by default that of the tangent lift, the same in
+        both (`dual_number_inverse_differential`)."""
+        del sign
+        return dual_number_inverse_differential(partial(self.group_inverse_differential, group), U, X)
 
-    @abc.abstractmethod
     def planar_rotation(self, angle: Array) -> tuple[Array, Array]:
         """(sin θ, cos θ) of the rotation f(angle·E), where E generates the
         rotations of one coordinate plane (E² = −1 on it): the exact sub-flows
         of a splitting turn through these, each read by several rows of the
-        state. Computed with arithmetic XLA vectorises (`groups.sincos`), and
-        returned through `groups.computed_once`, so that the rows reading
-        them do not each evaluate them again."""
+        state. By default read off φ on SO(3) about the third axis; a map
+        overrides it with arithmetic XLA vectorises (`groups.sincos`). It
+        is returned through `groups.computed_once`, so that the rows reading
+        it do not each evaluate it again."""
+        axis = jnp.zeros((3,), jnp.result_type(angle)).at[2].set(1.0)
+        turned = cast(SO3, self.group_map(SO3, jnp.asarray(angle)[..., None] * axis)).matrix
+        return computed_once(turned[..., 1, 0], turned[..., 0, 0])
 
     def truncated_inverse_differential(self, bracket, U: AlgebraPair, X: AlgebraPair, truncation: int) -> AlgebraPair:
         """df⁻¹_U(X) truncated at `truncation` (an int that

@@ -6,7 +6,7 @@ import equinox as eqx
 
 from ..groups.trig import sincos
 from ..series import default_truncation, dexp_inv_series
-from .base import AbstractCoordinates, Truncation, check_truncation, dual_number_inverse_differential
+from .base import AbstractCoordinates, Truncation, check_truncation
 
 
 class Exp(AbstractCoordinates):
@@ -18,8 +18,9 @@ class Exp(AbstractCoordinates):
     to the bundle).
 
     On G ⋉ 𝔤 the map is the bundle's own exponential, exp(u, v) =
-    (exp(u), dexp_{∓u} v) (Table 2.2), and its exact dexp⁻¹ is the tangent lift
-    of the base group's (`dual_number_inverse_differential`).
+    (exp(u), dexp_{∓u} v) (Table 2.2), the tangent lift of exp, so its exact
+    dexp⁻¹ is the tangent lift of the base group's (the default
+    `semidirect_inverse_differential`).
     """
 
     truncation: Truncation = eqx.field(static=True, default="auto")
@@ -27,9 +28,6 @@ class Exp(AbstractCoordinates):
 
     def __check_init__(self):
         check_truncation(self.truncation)
-
-    def check_group(self, group):
-        pass
 
     def resolve_truncation(self, method_order):
         if self.truncation == "auto":
@@ -57,13 +55,6 @@ class Exp(AbstractCoordinates):
 
     def fiber_map(self, group, u, v, sign):
         return group.dexp(sign * u, v)
-
-    def fiber_map_inverse(self, group, u, w, sign):
-        return group.dexp_inv(sign * u, w)
-
-    def semidirect_inverse_differential(self, group, sign, U, X):
-        del sign  # the tangent lift: the same formula in both trivialisations
-        return dual_number_inverse_differential(group.dexp_inv, U, X)
 
     def planar_rotation(self, angle):
         return sincos(angle)

@@ -41,5 +41,8 @@ class AbstractRotationGroup(AbstractQuadraticGroup):
     def renormalized(self) -> Self:
         return self._with_matrix(bjorck_step_where_drifted(self.matrix))
 
+    def change_from_identity(self) -> Array:
+        return self.matrix - jnp.eye(self.matrix.shape[-1], dtype=self.matrix.dtype)
+
     def product_change(self, change: Array, side: Literal["right", "left"]) -> Self:
         return self._with_matrix(self.matrix @ change if side == "right" else change @ self.matrix)

@@ -11,16 +11,14 @@ from jaxtyping import Array, Float
 
 from ..series import dexp_inv_series
 from ._util import as_array, check_floating
+from .base import CONVERGED_SERIES_TERMS
 from .rotation import AbstractRotationGroup
 
-EXACT_SERIES_TERMS = 40
-"""Terms of the Bernoulli series used as the exact dexp⁻¹ on so(n) for small u.
-
-The series Σ B_k/k! ad_u^k converges for ‖ad_u‖ < 2π; its terms decay like
-(‖ad_u‖/2π)^k, so 40 terms are exact to float64 round-off for ‖ad_u‖ ≲ 2.5.
-‖ad_u‖ ≤ 2‖u‖₂ ≤ √2‖u‖_F for skew u, so the series serves ‖u‖_F ≤
-`SERIES_RADIUS`; beyond it `SOn.dexp_inv` diagonalises ad_u."""
 SERIES_RADIUS = 1.75
+"""‖u‖_F up to which `SOn.dexp_inv` sums the Bernoulli series
+(`CONVERGED_SERIES_TERMS` powers, exact to round-off for ‖ad_u‖ ≲ 2.5, and
+‖ad_u‖ ≤ 2‖u‖₂ ≤ √2‖u‖_F for skew u); beyond it the closed form
+diagonalises ad_u."""
 
 
 NEAR_IDENTITY = 0.1
@@ -309,7 +307,7 @@ class SOn(AbstractRotationGroup):
         invertible (no eigenvalue difference of u a nonzero multiple of 2πi).
 
         For ‖u‖_F ≤ `SERIES_RADIUS` the Bernoulli series with
-        `EXACT_SERIES_TERMS` terms (round-off accurate there, and smooth to
+        `CONVERGED_SERIES_TERMS` terms (round-off accurate there, and smooth to
         differentiate at u = 0). Beyond, where the series converges slowly or
         not at all, the closed form: iu = VΛV* is Hermitian, ad_u acts on
         Ṽ = V*vV entrywise as −i(λ_j − λ_k), and dexp⁻¹ multiplies each entry
@@ -324,7 +322,7 @@ class SOn(AbstractRotationGroup):
         u, v = jnp.broadcast_arrays(u, v)
         large = jnp.sum(u**2, axis=(-2, -1)) > SERIES_RADIUS**2
         series_u = jnp.where(large[..., None, None], 0.0, u)
-        series = dexp_inv_series(cls.bracket, series_u, v, EXACT_SERIES_TERMS)
+        series = dexp_inv_series(cls.bracket, series_u, v, CONVERGED_SERIES_TERMS)
         # Double where: the closed form sees a harmless generator (distinct
         # eigenvalues) where the series is used.
         n = u.shape[-1]
@@ -334,22 +332,9 @@ class SOn(AbstractRotationGroup):
         return jnp.where(large[..., None, None], closed, series)
 
     @classmethod
-    def exp_adjoint(cls, u: Skew, x: Skew) -> Skew:
-        return cls.exp(u).adjoint(x)
-
-    @classmethod
     def exp_adjoint_change(cls, u: Skew, x: Skew) -> Skew:
         """g x gᵀ − x = E x + x Eᵀ + E x Eᵀ with E = g − I (`exp_change`)."""
         return _adjoint_change(cls.exp_change(u), x)
-
-    @classmethod
-    def inverse_shifted_ad(cls, u: Skew, v: Skew, alpha: float) -> Skew:
-        """Dense solve on the flattened algebra (ad_u as an n²×n² matrix)."""
-        if u.ndim > 2:
-            return jax.vmap(lambda uu, vv: cls.inverse_shifted_ad(uu, vv, alpha))(u, v)
-        ad = jax.jacfwd(lambda w: _commutator(u, w))(v).reshape(v.size, v.size)
-        eye = jnp.eye(v.size, dtype=v.dtype)
-        return jnp.linalg.solve(eye + alpha * ad, v.reshape(-1)).reshape(v.shape)
 
     @classmethod
     def cayley(cls, u: Skew) -> Self:
@@ -377,10 +362,6 @@ class SOn(AbstractRotationGroup):
     @classmethod
     def dcayley_inv(cls, u: Skew, v: Skew) -> Skew:
         return v - 0.5 * _commutator(u, v) - 0.25 * u @ v @ u
-
-    @classmethod
-    def cayley_adjoint(cls, u: Skew, x: Skew) -> Skew:
-        return cls.cayley(u).adjoint(x)
 
     @classmethod
     def cayley_adjoint_change(cls, u: Skew, x: Skew) -> Skew:

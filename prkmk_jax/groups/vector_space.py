@@ -54,9 +54,6 @@ class VectorSpace(AbstractQuadraticGroup):
     def project(self) -> Self:
         return self
 
-    def renormalized(self) -> Self:
-        return self
-
     def check(self) -> Self:
         return type(self)(eqx.error_if(self.value, ~jnp.all(jnp.isfinite(self.value)), "VectorSpace element is not finite (NaN or inf)."))
 
