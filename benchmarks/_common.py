@@ -88,14 +88,15 @@ def prkmk_solver(tableau, coordinates="exp", adaptive=False, root_finder=None, *
     return pk.PRKMKSolver(SCENE.method(tableau, coords, root_finder=root_finder, **options), adaptive=adaptive)
 
 
-def integrate_final(method, steps, h, gradient=pk.StoredSteps()):
+def integrate_final(method, steps, h, gradient=pk.StoredSteps(), scene=SCENE):
     """(Q₀, Π₀, inertia) -> (Q, Π, implicit iterations) after `steps` fixed
-    steps of size `h` of `prkmk_jax.integrate` with `method` on T*SO(3)
-    (differentiated by `gradient`, `integrate`'s argument)."""
+    steps of size `h` of `prkmk_jax.integrate` with `method` on the free
+    body `scene` (T*SO(3) unless given; differentiated by `gradient`,
+    `integrate`'s argument)."""
 
     def run(q0, pi0, inertia):
         y0 = pk.BundleElement(pk.SO3(q0), pi0)
-        traj = pk.integrate(method, SCENE, y0, 0.0, h, steps, inertia, save_every=steps, gradient=gradient)
+        traj = pk.integrate(method, scene, y0, 0.0, h, steps, inertia, save_every=steps, gradient=gradient)
         return traj.ys.base.matrix[-1], traj.ys.fiber[-1], traj.stats["num_iterations"]
 
     return run

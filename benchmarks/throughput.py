@@ -10,6 +10,12 @@
    iterations per step.
 2. Compile time (lower + compile of a fresh jit) against the number of
    stages: symplectic Euler (1), Störmer–Verlet (2), Lobatto IIIA–IIIB (3).
+3. The explicit stages unrolled or in a loop (`PRKMK(explicit_stages=...)`):
+   classical RK 4 and Dormand–Prince 8 (RKMK) on T*SO(3) and on G×g, one
+   trajectory and batches of 8, 16 and 1024 in the state, the two layouts
+   in alternation; time a step, loop over unrolled, and compile times: the
+   rows that check the default ("auto": the loop from `STAGE_LOOP_BATCH`
+   trajectories in the state on).
 
     python benchmarks/throughput.py
     python benchmarks/throughput.py --quick
@@ -26,6 +32,7 @@ import jax.numpy as jnp
 
 import _common as C
 import prkmk_jax as pk
+from prkmk_jax.scenes import FreeRigidBody
 
 H = 0.01
 
@@ -121,25 +128,83 @@ def compile_vs_stages(quick):
     return rows
 
 
+def stage_layouts(quick, rounds):
+    rows = []
+    bundles = {"T*SO(3)": pk.Cotangent(pk.SO3), "G×g": pk.DirectProduct(pk.SO3)}
+    tableaus = {"RK 4": pk.classical_rk4, "DP 8": pk.dormand_prince_8}
+    if quick:  # one of each layout: the script runs
+        bundles, tableaus = {"T*SO(3)": bundles["T*SO(3)"]}, {"DP 8": tableaus["DP 8"]}
+    for batch in [8] if quick else [1, 8, 16, 1024]:
+        steps = 10 if quick else max(50, 2000 // batch)
+        qs, pis = C.initial_conditions(batch, seed=3)
+        args = (jnp.asarray(qs), jnp.asarray(pis), jnp.asarray(C.INERTIA))
+        for bundle_name, bundle in bundles.items():
+            scene = FreeRigidBody(bundle)
+            for tableau_name, tableau in tableaus.items():
+                compiled, compile_s = {}, {}
+                for layout in ("unrolled", "loop"):
+                    final = C.integrate_final(scene.method(tableau, explicit_stages=layout), steps, H, scene=scene)
+                    compiled[layout], compile_s[layout] = C.compile_fn(final, *args)
+                    jax.block_until_ready(compiled[layout](*args))
+                times = C.interleaved_times({k: functools.partial(f, *args) for k, f in compiled.items()}, rounds=rounds)
+                row = dict(
+                    bundle=bundle_name,
+                    tableau=tableau_name,
+                    batch=batch,
+                    step_us={k: 1e6 * statistics.median(v) / steps for k, v in times.items()},
+                    loop_over_unrolled=C.median_ratio(times, "loop", "unrolled"),
+                    compile_s=compile_s,
+                )
+                rows.append(row)
+                print(
+                    f"{bundle_name:8s} {tableau_name:5s} batch {batch:5d}  step unrolled {row['step_us']['unrolled']:9.1f} µs  "
+                    f"loop {row['step_us']['loop']:9.1f} µs  loop/unrolled {row['loop_over_unrolled']:5.2f}  "
+                    f"compile {compile_s['unrolled']:5.2f}s / {compile_s['loop']:5.2f}s",
+                    flush=True,
+                )
+    return rows
+
+
 def throughput_table(results: Path) -> str:
     """`throughput.py`: trajectory-steps per second against the batch, compile
-    time against the number of stages."""
+    time against the number of stages, and the explicit stage layouts (each
+    part that the results hold)."""
     data = C.results_file(results, "throughput.json")
-    rows = [
-        [
-            str(r["batch"]),
-            r["method"],
-            f"{r['traj_steps_per_s']:.3g}",
-            C.number(r["iterations_per_step"], ".1f"),
-            C.number(r["over_tsit5"], ".2f"),
-            f"{r['compile_s']:.2f}",
+    tables = [C.measured_on(data)] if "machine" in data else []
+    if "throughput" in data:
+        rows = [
+            [
+                str(r["batch"]),
+                r["method"],
+                f"{r['traj_steps_per_s']:.3g}",
+                C.number(r["iterations_per_step"], ".1f"),
+                C.number(r["over_tsit5"], ".2f"),
+                f"{r['compile_s']:.2f}",
+            ]
+            for r in data["throughput"]
         ]
-        for r in data["throughput"]
-    ]
-    rates = C.table(["batch", "method", "trajectory-steps/s", "iterations a step", "time / Tsit5", "compile, s"], rows)
-    rows = [[r["tableau"], str(r["stages"]), r["path"], f"{r['compile_s']:.2f}"] for r in data["compile_vs_stages"]]
-    compile_times = C.table(["tableau", "stages", "path", "compile, s"], rows)
-    return C.measured_on(data) + "\n\n" + rates + "\n\n" + compile_times
+        tables.append(C.table(["batch", "method", "trajectory-steps/s", "iterations a step", "time / Tsit5", "compile, s"], rows))
+    if "compile_vs_stages" in data:
+        rows = [[r["tableau"], str(r["stages"]), r["path"], f"{r['compile_s']:.2f}"] for r in data["compile_vs_stages"]]
+        tables.append(C.table(["tableau", "stages", "path", "compile, s"], rows))
+    if "stage_layouts" in data:
+        layouts = data["stage_layouts"]
+        rows = [
+            [
+                r["bundle"],
+                r["tableau"],
+                str(r["batch"]),
+                f"{r['step_us']['unrolled']:.1f}",
+                f"{r['step_us']['loop']:.1f}",
+                f"{r['loop_over_unrolled']:.2f}",
+                f"{r['compile_s']['unrolled']:.2f} / {r['compile_s']['loop']:.2f}",
+            ]
+            for r in layouts["rows"]
+        ]
+        header = ["bundle", "tableau", "batch in the state", "µs a step, unrolled", "µs a step, loop", "loop / unrolled"]
+        header.append("compile, s (unrolled / loop)")
+        tables += ["The explicit stage layouts. " + C.measured_on(layouts), C.table(header, rows)]
+    return "\n\n".join(tables)
 
 
 def tables(results: Path) -> dict[str, str]:
@@ -148,17 +213,23 @@ def tables(results: Path) -> dict[str, str]:
 
 
 def main(argv=None):
-    args, out = C.cli(__doc__, argv, lambda p: p.add_argument("--parts", default="throughput,compile"))
+    args, out = C.cli(__doc__, argv, lambda p: p.add_argument("--parts", default="throughput,compile,layouts"))
     rounds = 1 if args.quick else 7
-    result = dict(machine=C.machine())
     parts = args.parts.split(",")
+    # A run of some parts keeps the other parts' results in the file.
+    previous = out / "throughput.json"
+    result = json.loads(previous.read_text()) if previous.exists() and set(parts) != {"throughput", "compile", "layouts"} else {}
+    if "throughput" in parts or "compile" in parts:
+        result["machine"] = C.machine()
     if "throughput" in parts:
         result["throughput"] = throughput(args.quick, rounds)
     if "compile" in parts:
         result["compile_vs_stages"] = compile_vs_stages(args.quick)
+    if "layouts" in parts:
+        result["stage_layouts"] = dict(machine=C.machine(), rows=stage_layouts(args.quick, rounds))
     with open(out / "throughput.json", "w") as f:
         json.dump(result, f, indent=1)
-    if "throughput" in result:
+    if "throughput" in parts:
         plot(result["throughput"], out / "throughput.png")
     return out
 

@@ -301,7 +301,7 @@ def test_composition_through_diffeqsolve_gradient_matches_finite_differences():
     """Gradients through diffeqsolve's default adjoint match finite differences."""
     field = rigid_body_field(COTANGENT, "body")
     y0 = initial_state(COTANGENT)
-    solver = pk.PRKMKSolver(pk.Composition(_SV_COT, pk.suzuki_5))
+    solver = pk.PRKMKSolver(pk.Composition(_SV_COT, pk.yoshida_triple_jump))
 
     def final(inertia, pi0, t1=1.0, dt=0.1):
         sol = diffrax.diffeqsolve(pk.PRKMKTerm(field), solver, 0.0, t1, dt, pk.BundleElement(y0.base, pi0), inertia, max_steps=16)

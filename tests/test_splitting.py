@@ -186,7 +186,7 @@ def test_a_batch_in_the_state_and_vmap_give_the_single_runs(name):
     of G×g)."""
     batch = 3
     scene, y0, args = CASES[name]
-    method = scene.splitting(pk.suzuki_5)
+    method = scene.splitting()
     ys = _batch_of(y0, batch, seed=10)
 
     def final(y):
