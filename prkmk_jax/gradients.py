@@ -29,12 +29,11 @@ from .loop import (
     checked_gradients,
     loop_body,
     loop_start,
-    reconstruction_gap,
     reconstruction_tolerance,
-    step_back,
     steps_forward,
+    walk_back,
 )
-from .methods.base import RESULTS, AbstractMethod, batched_like
+from .methods.base import AbstractMethod
 from .methods.stage_solve import STAGE_SLOPES_NAME
 
 
@@ -157,9 +156,10 @@ def _or_zeros(gradient, zeros):
 
 @_run_and_undo.def_bwd
 def _run_and_undo_bwd(kept, grad_out, perturbed, diff, method, undo, start, t0, dt, steps_done, counts, tolerance):
-    """Walk back stretch by stretch: rebuild each state from the kept state
-    at the stretch's end by `undo`'s step of −dt, and pull the cotangent
-    back through the step's VJP there (`step_back`)."""
+    """Walk back stretch by stretch (`walk_back`): each rebuilt from the kept
+    state at its end by `undo`'s step of −dt, the cotangent pulled back
+    through each step's VJP, a saved state's cotangent added where it was
+    saved."""
     del perturbed, start
     num_saves, chunks_per_save, chunk = counts
     y0, args, vector_field = diff
@@ -168,42 +168,25 @@ def _run_and_undo_bwd(kept, grad_out, perturbed, diff, method, undo, start, t0, 
     saved_zeros = jax.tree.map(lambda x: jnp.zeros_like(x[:, -1]), kept)
     grad_saved = saved_zeros if grad_saved is None else jax.tree.map(_or_zeros, grad_saved, saved_zeros, is_leaf=_is_none)
     grad_last = zeros_y if grad_last is None else jax.tree.map(_or_zeros, grad_last, zeros_y, is_leaf=_is_none)
-    params_dynamic, params_static = eqx.partition((args, vector_field), eqx.is_inexact_array)
-    params_grad0 = jax.tree.map(jnp.zeros_like, params_dynamic)
+    save_every = chunks_per_save * chunk
+    num_steps = num_saves * save_every
+    kept_flat = jax.tree.map(lambda x: x.reshape((num_saves * chunks_per_save,) + x.shape[2:]), kept)
+    y_last = jax.tree.map(lambda x: x[-1], kept_flat)
 
-    def back_one_step(carry, n):
-        y_next, cotangent, params_grad, undo_carried, result = carry
-        y_prev, cotangent_prev, params_step, undo_carried, result = step_back(
-            method, undo, params_dynamic, params_static, t0 + n * dt, t0 + (n + 1) * dt, dt, y_next, cotangent, undo_carried, result
-        )
-        params_grad = jax.tree.map(lambda a, b: a + b, params_grad, params_step)
-        return (y_prev, cotangent_prev, params_grad, undo_carried, result), None
+    def step_times(k):
+        n = steps_done + k
+        return t0 + n * dt, t0 + (n + 1) * dt, dt
 
-    def back_one_chunk(carry, inputs):
-        cotangent, params_grad, result, worst = carry
-        y_end, y_start, incoming, first = inputs
-        cotangent = jax.tree.map(jnp.add, cotangent, incoming)
-        undo_carried = undo.initial_carried(vector_field, t0 + (first + chunk) * dt, y_end, args)
-        steps = first + jnp.arange(chunk, dtype=jnp.int32)[::-1]
-        init = (y_end, cotangent, params_grad, undo_carried, result)
-        (rebuilt, cotangent, params_grad, _, result), _ = jax.lax.scan(back_one_step, init, steps)
-        # The stretch's first state is kept too: how far the rebuilt one is from it.
-        return (cotangent, params_grad, result, jnp.maximum(worst, reconstruction_gap(rebuilt, y_start))), None
+    def incoming(step):
+        # The saved state after `step` (a multiple of save_every) takes its cotangent; the others none.
+        saved = jax.tree.map(lambda g: g[jnp.clip(step // save_every - 1, 0, num_saves - 1)], grad_saved)
+        return jax.tree.map(lambda g: jnp.where(step % save_every == 0, g, jnp.zeros_like(g)), saved)
 
-    total_chunks = num_saves * chunks_per_save
-
-    def by_chunk(x):
-        return x.reshape((total_chunks,) + x.shape[2:])
-
-    kept_flat = jax.tree.map(by_chunk, kept)
-    # Each stretch starts where the one before ends, the first at y0.
-    starts = jax.tree.map(lambda first, later: jnp.concatenate([first[None], later[:-1]]), y0, kept_flat)
-    # The cotangent arriving at a stretch's end: the saved state's where the
-    # stretch ends a save interval (the last of each), none otherwise.
-    incoming = jax.tree.map(lambda g: by_chunk(jnp.zeros((num_saves, chunks_per_save) + g.shape[1:], g.dtype).at[:, -1].set(g)), grad_saved)
-    firsts = steps_done + chunk * jnp.arange(total_chunks, dtype=jnp.int32)
-    init = batched_like((grad_last, params_grad0, RESULTS.successful, jnp.zeros((), jnp.result_type(*jax.tree.leaves(y0)))), kept)
-    (cotangent, params_grad, result, worst), _ = jax.lax.scan(back_one_chunk, init, (kept_flat, starts, incoming, firsts), reverse=True)
+    # The last state is the last saved one: its cotangent is both.
+    cotangent = jax.tree.map(lambda g, last: g[-1] + last, grad_saved, grad_last)
+    cotangent, params_grad, result, worst = walk_back(
+        method, undo, vector_field, args, y0, y_last, cotangent, num_steps, step_times, chunk, kept_flat, incoming
+    )
     remedy = "give a smaller checkpoint_every (or save more often)"
     cotangent, (args_grad, field_grad) = checked_gradients((cotangent, params_grad), result, worst, tolerance, f"{chunk} steps", remedy)
     return cotangent, args_grad, field_grad

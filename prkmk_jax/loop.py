@@ -4,7 +4,7 @@ steps, and one step of a reversible backward walk.
 `integrate`/`resume` (through a gradient strategy, `gradients`),
 `PRKMKSolver` and `ReversibleAdjoint` all start a run with `checked_start`;
 the fixed-step runs loop with `steps_forward`; both reversible gradients
-walk back with `step_back`. Everything here knows a method only through
+walk back with `walk_back`. Everything here knows a method only through
 `AbstractMethod`.
 """
 
@@ -114,6 +114,61 @@ def step_back(
     cotangent_prev, params_step = vjp(cotangent)
     result = first_failure(first_failure(result, undone.result), again_result)
     return undone.y, cotangent_prev, params_step, undone.carried, result
+
+
+def walk_back(method, undo, vector_field, args, y0, y_last, cotangent, num_steps, step_times, every=None, kept=None, incoming=None):
+    """The reversible backward pass of a run of `num_steps` fixed steps that
+    started at `y0` and ended at `y_last`, with `cotangent` arriving there:
+    stretch by stretch from the end, each step undone and differentiated
+    (`step_back`). Both reversible gradients walk back with it.
+
+    - `step_times(k)`: (start, end, step) of the run's step k (0 the first).
+    - `every`, `kept`: the run kept the state after steps every, 2·every, …
+      in `kept` (slot j after step (j + 1)·every); each stretch between
+      kept states is rebuilt from the kept state at its end, the undoing
+      method's carried slopes started afresh there. None: one stretch.
+    - `incoming(step)`: the cotangent arriving at the kept state after that
+      step (a saved state's), or None for none.
+
+    Each stretch's rebuilt start is compared with the kept one (y0 for the
+    first). Returns (the cotangent at y0, the parameters' cotangents as
+    (args, vector field), the first failure, the largest `reconstruction_gap`).
+    """
+    params_dynamic, params_static = eqx.partition((args, vector_field), eqx.is_inexact_array)
+
+    def back_one_step(carry):
+        k, y_next, cotangent, params_grad, undo_carried, result = carry
+        t_start, t_end, dt = step_times(k)
+        y_prev, cotangent, params_step, undo_carried, result = step_back(
+            method, undo, params_dynamic, params_static, t_start, t_end, dt, y_next, cotangent, undo_carried, result
+        )
+        return k - 1, y_prev, cotangent, jax.tree.map(jnp.add, params_grad, params_step), undo_carried, result
+
+    def kept_after(step):
+        if every is None:
+            return y0
+        slot = jnp.clip(step // every - 1, 0, jax.tree.leaves(kept)[0].shape[0] - 1)
+        state = jax.tree.map(lambda b: b[slot], kept)
+        return jax.tree.map(lambda first, later: jnp.where(step == 0, first, later), y0, state)
+
+    def back_one_stretch(carry):
+        end, y_end, cotangent, params_grad, result, worst = carry
+        first = jnp.zeros_like(end) if every is None else ((end - 1) // every) * every
+        undo_carried = undo.initial_carried(vector_field, step_times(end - 1)[1], y_end, args)
+        init = (end - 1, y_end, cotangent, params_grad, *batched_like((undo_carried,), y_end), result)
+        _, rebuilt, cotangent, params_grad, _, result = jax.lax.while_loop(lambda c: c[0] >= first, back_one_step, init)
+        start = kept_after(first)
+        worst = jnp.maximum(worst, reconstruction_gap(rebuilt, start))
+        if incoming is not None:
+            arriving = incoming(first)
+            cotangent = jax.tree.map(lambda c, a: c + jnp.where(first > 0, a, jnp.zeros_like(a)), cotangent, arriving)
+        return first, start, cotangent, params_grad, result, worst
+
+    params_grad = jax.tree.map(jnp.zeros_like, params_dynamic)
+    worst = jnp.zeros((), jnp.result_type(*jax.tree.leaves(y0)))
+    init = (jnp.asarray(num_steps, jnp.int32), y_last, *batched_like((cotangent, params_grad, RESULTS.successful, worst), y_last))
+    _, _, cotangent, params_grad, result, worst = jax.lax.while_loop(lambda c: c[0] > 0, back_one_stretch, init)
+    return cotangent, params_grad, result, worst
 
 
 def reconstruction_gap(rebuilt, kept):

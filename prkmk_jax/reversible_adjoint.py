@@ -14,8 +14,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .loop import check_reversible_options, checked_gradients, reconstruction_gap, reconstruction_tolerance, step_back
-from .methods.base import RESULTS, batched_like
+from .loop import check_reversible_options, checked_gradients, reconstruction_tolerance, walk_back
+from .methods.base import batched_like
 from .solver import PRKMKSolver, _user_clock
 
 
@@ -208,8 +208,9 @@ def _diffrax_loop_fwd(perturbed, y_args_terms, **kwargs):
 
 @_diffrax_loop.def_bwd
 def _diffrax_loop_bwd(residuals, grad_out, perturbed, y_args_terms, *, self, undo, solver, t0, t1, dt0, **kwargs):
-    """Walk back from the last state over every step the solve took; with
-    checkpoints, each stretch of K steps from the state kept at its end."""
+    """Walk back from the last state over every step the solve took
+    (`walk_back`); with checkpoints, each stretch of K steps from the state
+    kept at its end."""
     del perturbed, kwargs
     y_last, num_steps, kept = residuals
     # No state kept (max_steps < K) is no checkpoint.
@@ -221,7 +222,6 @@ def _diffrax_loop_bwd(residuals, grad_out, perturbed, y_args_terms, *, self, und
     else:
         cotangent = jax.tree.map(lambda y, g: jnp.zeros_like(y) if g is None else g[0], y_last, grad_ys, is_leaf=_is_none)
     method, field = solver.method, _user_clock(terms)
-    params_dynamic, params_static = eqx.partition((args, field), eqx.is_inexact_array)
     direction = field.direction
     end_of = _constant_step_ends(t0, t1, dt0)
 
@@ -229,28 +229,7 @@ def _diffrax_loop_bwd(residuals, grad_out, perturbed, y_args_terms, *, self, und
         start, end = end_of(k), end_of(k + 1)
         return direction * start, direction * end, direction * (end - start)
 
-    def back_one_step(carry):
-        k, y_next, cotangent, params_grad, undo_carried, result, worst = carry
-        if every is not None:
-            # A step that ends at a kept state (not the last) starts its
-            # stretch's reconstruction there, once its rebuilt value is checked.
-            end = k + 1
-            at_kept = (end % every == 0) & (end < num_steps)
-            kept_state = jax.tree.map(lambda b: b[jnp.clip(end // every - 1, 0, b.shape[0] - 1)], kept)  # any slot where not at_kept
-            worst = jnp.where(at_kept, jnp.maximum(worst, reconstruction_gap(y_next, kept_state)), worst)
-            y_next = jax.tree.map(lambda a, b: jnp.where(at_kept, b, a), y_next, kept_state)
-        s_start, s_end, h = step_times(k)
-        y_prev, cotangent, params_step, undo_carried, result = step_back(
-            method, undo, params_dynamic, params_static, s_start, s_end, h, y_next, cotangent, undo_carried, result
-        )
-        return k - 1, y_prev, cotangent, jax.tree.map(jnp.add, params_grad, params_step), undo_carried, result, worst
-
-    undo_carried = undo.initial_carried(field, direction * t1, y_last, args)
-    params_grad0 = jax.tree.map(jnp.zeros_like, params_dynamic)
-    worst0 = jnp.zeros((), jnp.result_type(*jax.tree.leaves(y0)))
-    init = (num_steps - 1, y_last, *batched_like((cotangent, params_grad0, undo_carried, RESULTS.successful, worst0), y_last))
-    _, rebuilt, cotangent, params_grad, _, result, worst = jax.lax.while_loop(lambda carry: carry[0] >= 0, back_one_step, init)
-    worst = jnp.maximum(worst, reconstruction_gap(rebuilt, y0))
+    cotangent, params_grad, result, worst = walk_back(method, undo, field, args, y0, y_last, cotangent, num_steps, step_times, every, kept)
     tolerance = reconstruction_tolerance(self.max_reconstruction_error, y0)
     if every is None:
         stretch, remedy = "the whole solve", "give ReversibleAdjoint a checkpoint_every"

@@ -15,6 +15,7 @@ Conventions used throughout the package (they fix every sign):
 """
 
 import abc
+import math
 from collections.abc import Callable
 from typing import Any, Literal, Self
 
@@ -41,10 +42,14 @@ def solve_in_algebra(linear_map: Callable[[Array, Array], Array], u: Array, rhs:
     matrix per element. The differentials without a closed form use it."""
     u, rhs = jnp.broadcast_arrays(u, rhs)
     algebra_shape = rhs.shape[rhs.ndim - algebra_ndim :]
+    size = math.prod(algebra_shape)
 
     def solve_one(u_one, rhs_one):
-        operator = lx.FunctionLinearOperator(lambda w: linear_map(u_one, w), jax.eval_shape(lambda: rhs_one))
-        return lx.linear_solve(operator, rhs_one, lx.AutoLinearSolver(well_posed=True)).value
+        # The map's matrix by forward-mode autodiff; the solve sees arrays
+        # only, so lineax's compiled solve is reused whatever the map.
+        matrix = jax.jacfwd(lambda w: linear_map(u_one, w))(rhs_one).reshape(size, size)
+        solution = lx.linear_solve(lx.MatrixLinearOperator(matrix), rhs_one.reshape(size), lx.LU())
+        return solution.value.reshape(algebra_shape)
 
     solved = jax.vmap(solve_one)(u.reshape((-1, *algebra_shape)), rhs.reshape((-1, *algebra_shape)))
     return solved.reshape(rhs.shape)
