@@ -34,9 +34,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, PyTree
 
-from .bundles import BundleElement
+from ._bundles import BundleElement
+from ._fields import AbstractFieldOnBundle
 from .coordinates import AbstractCoordinates
-from .fields import AbstractFieldOnBundle
 from .groups._util import drifted
 
 Packed = Float[Array, "d *batch"]

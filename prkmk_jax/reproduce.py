@@ -23,10 +23,10 @@ import numpy as np
 import optimistix as optx
 
 from . import diagnostics
-from .bundles import AbstractBundle, Cartesian, Cotangent, DirectProduct
+from ._bundles import AbstractBundle, Cartesian, Cotangent, DirectProduct
+from ._integrate import integrate
 from .coordinates import Cayley, Exp
 from .groups import SO3, SOn
-from .integrate import integrate
 from .methods import PRKMK, RESULTS
 from .scenes import AbstractScene
 from .scenes import rigid_body as rb

@@ -306,7 +306,7 @@ components: RKMK 8. Explicit, so its cost per step is fixed (no stage
 iteration); neither symplectic nor symmetric, so the energy error grows
 with time, but the step stays on the group (QᵀQ = I and coadjoint orbits
 to round-off). With `Exp()` the dexp⁻¹ series keeps the terms up to ad⁶
-(`series.default_truncation`); `Cayley()` is exact and cheaper."""
+(`_series.default_truncation`); `Cayley()` is exact and cheaper."""
 
 ALL_TABLEAUS = (symplectic_euler, symplectic_euler_adjoint, stormer_verlet, stormer_verlet_adjoint, lobatto_iiia_iiib4, lobatto_iiia_iiib6)
 """The symplectic pairs."""

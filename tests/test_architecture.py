@@ -86,7 +86,7 @@ def test_the_drivers_and_gradients_name_no_concrete_method():
     """integrate, the diffrax solver and the gradient code know a method only
     through `AbstractMethod`."""
     concrete = {"PRKMK", "Adjoint", "Symmetrized", "Composition", "Splitting", "AbstractMadeOfSteps"}
-    for name in ("integrate.py", "solver.py", "gradients.py", "reversible_adjoint.py", "loop.py"):
+    for name in ("_integrate.py", "_solver.py", "_gradients.py", "_reversible_adjoint.py", "_loop.py"):
         source = (PACKAGE / name).read_text()
         named = {node.id for node in ast.walk(ast.parse(source)) if isinstance(node, ast.Name)} | {
             alias.asname or alias.name for node in ast.walk(ast.parse(source)) if isinstance(node, ast.ImportFrom) for alias in node.names

@@ -14,7 +14,7 @@ from test_groups import BUNDLES, bundle_algebra
 
 import prkmk_jax as pk
 from helpers import max_leaf_difference
-from prkmk_jax.exact_sums import two_sum
+from prkmk_jax._exact_sums import two_sum
 from prkmk_jax.methods.base import compensated
 from prkmk_jax.scenes import FreeRigidBody
 from prkmk_jax.scenes.rigid_body import PAPER_INERTIA, random_rotation

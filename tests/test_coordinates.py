@@ -108,7 +108,7 @@ def test_semidirect_cayley_is_the_section_4_4_map():
 def test_series_module_matches_known_bernoulli_numbers():
     from fractions import Fraction
 
-    from prkmk_jax.series import bernoulli_numbers
+    from prkmk_jax._series import bernoulli_numbers
 
     b = bernoulli_numbers(10)
     assert b[:5] == (1, Fraction(-1, 2), Fraction(1, 6), 0, Fraction(-1, 30))

@@ -1,4 +1,4 @@
-"""`exact_sums.rounded_once_combination` against the exact rational value of
+"""`_exact_sums.rounded_once_combination` against the exact rational value of
 dt·Σⱼ cⱼxⱼ (Python fractions), alone and fused into several consumers, in
 this process and under XLA's default code generator (where LLVM may
 contract a·b + c into a fused multiply-add); and the PRKMK step's increment
@@ -13,7 +13,7 @@ import pytest
 
 import prkmk_jax as pk
 from helpers import INERTIA, random_rotation, rigid_body_field
-from prkmk_jax.exact_sums import rounded_once_combination
+from prkmk_jax._exact_sums import rounded_once_combination
 
 WEIGHTS = {
     "symplectic Euler": (1.0,),

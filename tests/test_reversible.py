@@ -226,7 +226,7 @@ def test_reversible_adjoint_steps_at_diffrax_times(t1, dt0):
     """The times the backward pass undoes the steps at are those of diffrax's
     steps (`SaveAt(steps=True)`), to the last bit (the same formula, whose
     product XLA may round either way)."""
-    from prkmk_jax.reversible_adjoint import _constant_step_ends
+    from prkmk_jax._reversible_adjoint import _constant_step_ends
 
     solver, steps = pk.PRKMKSolver(FREE.splitting()), diffrax.SaveAt(steps=True)
     sol = diffrax.diffeqsolve(pk.PRKMKTerm(FREE), solver, 0.0, t1, dt0, Y0, INERTIA, saveat=steps, max_steps=1000)

@@ -4,8 +4,8 @@ from typing import ClassVar
 
 import equinox as eqx
 
+from .._series import default_truncation, dexp_inv_series
 from ..groups.trig import sincos
-from ..series import default_truncation, dexp_inv_series
 from .base import AbstractCoordinates, Truncation, check_truncation
 
 

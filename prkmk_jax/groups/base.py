@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import lineax as lx
 from jaxtyping import Array
 
-from ..series import dexp_inv_series, dexp_series
+from .._series import dexp_inv_series, dexp_series
 
 CONVERGED_SERIES_TERMS = 40
 """Powers of ad_u kept where a series stands in for an exact map (the

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 from jaxtyping import Array, Float
 
-from ..series import dexp_inv_series
+from .._series import dexp_inv_series
 from ._util import as_array, check_floating
 from .base import CONVERGED_SERIES_TERMS
 from .rotation import AbstractRotationGroup

@@ -20,10 +20,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, PyTree
 
-from ..bundles import AbstractBundle, AlgebraPair, BundleElement, Increment
+from .._bundles import AbstractBundle, AlgebraPair, BundleElement, Increment
+from .._exact_sums import two_sum
+from .._fields import AbstractFieldOnBundle, Iterations, Time, VectorField
 from ..coordinates import AbstractCoordinates
-from ..exact_sums import two_sum
-from ..fields import AbstractFieldOnBundle, Iterations, Time, VectorField
 from ..groups.trig import computed_once
 
 RESULTS = diffrax.RESULTS

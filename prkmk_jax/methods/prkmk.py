@@ -29,10 +29,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import PyTree
 
-from ..bundles import AbstractBundle, BundleElement
+from .._bundles import AbstractBundle, BundleElement
+from .._exact_sums import rounded_once_combination
+from .._fields import Time, VectorField
 from ..coordinates import AbstractCoordinates, Exp
-from ..exact_sums import rounded_once_combination
-from ..fields import Time, VectorField
 from ..tableaus import PartitionedTableau, stormer_verlet
 from .adjoint import Adjoint
 from .base import RESULTS, AbstractMethod, Step, check_parts, flag_nonfinite

@@ -33,11 +33,11 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import PyTree
 
-from ..bundles import BundleElement
+from .._bundles import BundleElement
+from .._fields import Time, VectorField
 from ..compositions import CompositionCoefficients
 from ..coordinates import AbstractCoordinates, Exp
 from ..exact_flows import AbstractSplitScene, renormalized_rotations
-from ..fields import Time, VectorField
 from ..groups.trig import computed_once
 from .base import LOW_PRECISION_EPS, RESULTS, AbstractMethod, Step, check_parts, flag_nonfinite
 

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, PyTree
 
-from ..bundles import AlgebraPair
+from .._bundles import AlgebraPair
 from ..tableaus import PartitionedTableau
 from .base import RESULTS, first_failure
 from .stage_plan import Explicit

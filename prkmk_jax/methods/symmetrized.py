@@ -17,8 +17,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, PyTree
 
-from ..bundles import BundleElement
-from ..fields import VectorField
+from .._bundles import BundleElement
+from .._fields import VectorField
 from .adjoint import AbstractMadeOfSteps, Adjoint
 from .base import AbstractMethod, Step, compensated, first_failure, largest_entry_difference, no_compensation
 

@@ -16,10 +16,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, PyTree
 
-from ..bundles import AbstractBundle, AlgebraPair, BundleElement, Cotangent
+from .._bundles import AbstractBundle, AlgebraPair, BundleElement, Cotangent
+from .._fields import AbstractFieldOnBundle, Time
 from ..compositions import CompositionCoefficients
 from ..coordinates import AbstractCoordinates, Exp
-from ..fields import AbstractFieldOnBundle, Time
 from ..groups import SO3, AbstractRotationGroup
 from ..methods.prkmk import PRKMK
 from ..methods.splitting import Splitting

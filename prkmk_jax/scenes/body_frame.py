@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..bundles import BundleElement
+from .._bundles import BundleElement
 from ..exact_flows import AxisRotation, Packed
 from ..groups.so3 import SO3
 

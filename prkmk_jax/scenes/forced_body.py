@@ -17,8 +17,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
 from .. import diagnostics, exact_flows
-from ..bundles import AbstractBundle, BundleElement
-from ..fields import Time
+from .._bundles import AbstractBundle, BundleElement
+from .._fields import Time
 from . import body_frame
 from .base import AbstractBodyOnTStarSO3, checked_moments, checked_parameters, rotation_matrix
 

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .. import diagnostics, exact_flows
-from ..bundles import AbstractBundle, BundleElement, Cotangent, DirectProduct
+from .._bundles import AbstractBundle, BundleElement, Cotangent, DirectProduct
 from ..groups import SO3, hat
 from . import body_frame
 from .base import (

@@ -23,7 +23,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .. import diagnostics, exact_flows
-from ..bundles import AbstractBundle, AbstractSemidirect, BundleElement, Cartesian, Cotangent, DirectProduct
+from .._bundles import AbstractBundle, AbstractSemidirect, BundleElement, Cartesian, Cotangent, DirectProduct
 from ..groups import SO3, SOn, hat, vee
 from . import body_frame
 from .base import (

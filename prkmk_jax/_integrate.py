@@ -10,10 +10,10 @@ import numpy as np
 from jax.core import Tracer
 from jaxtyping import Array, Float, Int, PyTree, Real
 
-from .bundles import BundleElement
-from .fields import Time, VectorField
-from .gradients import AbstractGradient, StoredSteps
-from .loop import checked_start
+from ._bundles import BundleElement
+from ._fields import Time, VectorField
+from ._gradients import AbstractGradient, StoredSteps
+from ._loop import checked_start
 from .methods.base import RESULTS, AbstractMethod, no_compensation
 
 

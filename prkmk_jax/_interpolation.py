@@ -13,7 +13,7 @@ import diffrax
 import jax.numpy as jnp
 from jaxtyping import Array, PyTree
 
-from .bundles import AlgebraPair, BundleElement
+from ._bundles import AlgebraPair, BundleElement
 from .methods.base import AbstractMethod
 
 

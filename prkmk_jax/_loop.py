@@ -17,8 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import PyTree
 
-from .bundles import BundleElement
-from .fields import VectorField, checked_field_args
+from ._bundles import BundleElement
+from ._fields import VectorField, checked_field_args
 from .methods.base import RESULTS, AbstractMethod, batched_like, compensated, first_failure, largest_entry_difference, no_compensation
 
 Carry = tuple

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Int, PyTree, Real
 
-from .bundles import AbstractBundle, AlgebraPair, BundleElement
+from ._bundles import AbstractBundle, AlgebraPair, BundleElement
 
 Time = float | Real[Array, ""]
 """A time or a step size: a Python number or a real scalar array."""

@@ -24,7 +24,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .loop import (
+from ._loop import (
     check_reversible_options,
     checked_gradients,
     loop_body,

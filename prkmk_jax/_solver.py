@@ -14,9 +14,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from .bundles import AlgebraPair, BundleElement
-from .interpolation import OnGroupInterpolation
-from .loop import checked_start
+from ._bundles import AlgebraPair, BundleElement
+from ._interpolation import OnGroupInterpolation
+from ._loop import checked_start
 from .methods.base import AbstractMethod, compensated, first_failure, no_compensation, tree_scale
 
 DENSE_OUTPUT_TRUNCATION_ORDER = 4

@@ -2,7 +2,7 @@
 trajectory: `ReversibleAdjoint`, diffrax's counterpart of
 `ReversibleGradient` (`gradients`). The forward solve keeps its last state
 and a checkpoint every K steps; the backward pass undoes the steps from
-there (`loop.step_back`).
+there (`_loop.walk_back`).
 
 It runs diffrax's own loop (`AbstractAdjoint._loop`) with its loop hooks
 and reads the loop's final state (`save_state`, `num_steps`): the diffrax
@@ -14,9 +14,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .loop import check_reversible_options, checked_gradients, reconstruction_tolerance, walk_back
+from ._loop import check_reversible_options, checked_gradients, reconstruction_tolerance, walk_back
+from ._solver import PRKMKSolver, _user_clock
 from .methods.base import batched_like
-from .solver import PRKMKSolver, _user_clock
 
 
 def _is_none(x) -> bool:
