@@ -41,13 +41,6 @@ from ..exact_flows import AbstractSplitScene, renormalized_rotations
 from ..groups.trig import computed_once
 from .base import LOW_PRECISION_EPS, RESULTS, AbstractMethod, Step, check_parts, flag_nonfinite
 
-FUSED_SUB_STEPS = 5
-"""At most this many sub-steps of a step are left to XLA to fuse; then
-their state is computed once (a barrier). Each rotated row reads two rows
-of the sub-step before, so a longer fused chain has XLA recompute earlier
-sub-steps many times over (a composed step has dozens), while a barrier
-after every sub-step costs more than it saves on a Strang step's five."""
-
 
 def sub_steps(num_parts: int, fractions: tuple[float, ...], merge: bool) -> tuple[tuple[int, float, float], ...]:
     """The sequence of sub-steps (part, start time, step), in units of h, of
@@ -152,9 +145,16 @@ class Splitting(AbstractMethod):
         flows = self.scene.exact_flows(args)
         z = self.scene.pack(y, args)
         plan = self._sub_steps(len(flows))
+        # At most one Strang step's sub-steps (2n − 1 for n parts) are left
+        # to XLA to fuse; then their state is computed once (a barrier). Each
+        # rotated row reads two rows of the sub-step before, so a longer fused
+        # chain has XLA recompute earlier sub-steps many times over (a
+        # composed step has dozens), while a barrier after every sub-step
+        # costs more than it saves within one Strang step.
+        fused = 2 * len(flows) - 1
         for k, (part, start, step) in enumerate(plan, start=1):
             z = flows[part].flow(self.coordinates, t + start * dt, z, step * dt, args)
-            if flows[part].always_materialised or (k % FUSED_SUB_STEPS == 0 and k < len(plan)):
+            if flows[part].always_materialised or (k % fused == 0 and k < len(plan)):
                 z = jax.lax.optimization_barrier(z)
         if jnp.finfo(dtype).eps > LOW_PRECISION_EPS:
             # As `AbstractMethod.advance`: the rounding of each rotation is
