@@ -11,7 +11,7 @@ import pytest
 
 import prkmk_jax as pk
 from helpers import INERTIA, TOP_ARGS, initial_state, max_leaf_difference
-from prkmk_jax.groups._util import orthogonality_defect
+from prkmk_jax.diagnostics import orthogonality_defect
 from prkmk_jax.scenes import FreeRigidBody, HeavyTop, SymmetricRigidBody
 from prkmk_jax.scenes.rigid_body import symmetric_initial_state
 
