@@ -14,7 +14,7 @@ the forward loop and says what reverse mode keeps.
   reconstruction error cannot grow over more than that stretch, and the
   memory is that of the kept states, whatever the number of steps.
 
-`ReversibleAdjoint` (`reversible_adjoint`) does the same for
+`ReversibleAdjoint` (`_reversible_adjoint`) does the same for
 `diffrax.diffeqsolve` with `PRKMKSolver`.
 """
 

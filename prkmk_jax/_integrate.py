@@ -1,7 +1,7 @@
 """Fixed-step runs of any method: `integrate` from a state, `resume` from
 where a run stopped. Each is compiled once per shape of its inputs
 (`eqx.filter_jit`, as `diffrax.diffeqsolve` is); the loop and what reverse
-mode keeps are the gradient strategy's (`gradients`)."""
+mode keeps are the gradient strategy's (`_gradients`)."""
 
 import equinox as eqx
 import jax
@@ -111,7 +111,7 @@ def integrate(
     stored steps (reverse mode keeps every step's state and stage slopes);
     `ReversibleGradient()` keeps only the saved states (and its
     checkpoints) and rebuilds the others backwards, for memory that does
-    not grow with the number of steps (`gradients`).
+    not grow with the number of steps (`_gradients`).
     """
     _check_method(method)
     _check_dt_value(dt)

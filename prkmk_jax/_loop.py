@@ -1,7 +1,7 @@
 """The core the drivers share: the start check, the forward loop of fixed
-steps, and one step of a reversible backward walk.
+steps, and the reversible backward walk.
 
-`integrate`/`resume` (through a gradient strategy, `gradients`),
+`integrate`/`resume` (through a gradient strategy, `_gradients`),
 `PRKMKSolver` and `ReversibleAdjoint` all start a run with `checked_start`;
 the fixed-step runs loop with `steps_forward`; both reversible gradients
 walk back with `walk_back`. Everything here knows a method only through

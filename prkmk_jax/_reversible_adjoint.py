@@ -1,6 +1,6 @@
 """Gradients of `diffrax.diffeqsolve` with `PRKMKSolver` without the stored
 trajectory: `ReversibleAdjoint`, diffrax's counterpart of
-`ReversibleGradient` (`gradients`). The forward solve keeps its last state
+`ReversibleGradient` (`_gradients`). The forward solve keeps its last state
 and a checkpoint every K steps; the backward pass undoes the steps from
 there (`_loop.walk_back`).
 

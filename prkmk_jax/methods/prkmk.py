@@ -235,7 +235,7 @@ class PRKMK(AbstractMethod):
         """yₙ₊₁ = f(h Σ bᵢ (Kᵢ, Lᵢ))⊙yₙ, a slope None (never computed: L when
         η ≡ 0) left out of the sums. Stages solved to round-off are a fixed
         point of their own formula's rounding, so h·Σ bᵢKᵢ is rounded once
-        from its exact value (`exact_sums`), not by that formula, whose error
+        from its exact value (`_exact_sums`), not by that formula, whose error
         would lean the same way at every step."""
         tab, (first, second) = self.tableau, slopes
         if tab.is_explicit or self.iterate_until != "round-off":
@@ -297,7 +297,7 @@ def _adjoint_step(method: PRKMK, vector_field, t, y, dt, args, field_now, guesse
     u_next, v_next = increment(first, second)
     if method.iterate_until == "round-off":
         # As PRKMK's step: u rounded once from the solved slopes, not by
-        # the formula of which they are a fixed point (`exact_sums`).
+        # the formula of which they are a fixed point (`_exact_sums`).
         u_rounded_once = rounded_once_combination(dt, tab.b_first, first, zeros[0])
         u_next = zeros[0] if u_rounded_once is None else u_rounded_once
     y_next, rounding = method.advance((u_next, v_next), y, method.compensated_sum)

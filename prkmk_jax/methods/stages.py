@@ -20,7 +20,8 @@ STAGE_LOOP_BATCH = 16
 evaluates an explicit tableau's stages in a loop (`PRKMK`). The rule: the
 loop from the batch at which the two layouts' step times are level, for
 beyond it the arithmetic on the batch sets a step's time and the loop is
-the faster, and the loop compiles faster throughout. `benchmarks/throughput.py`
+as fast or faster (and a many-stage tableau compiles faster in the loop).
+`benchmarks/throughput.py`
 times both layouts at 1, 8, 16 and 1024 trajectories, for RK 4 and
 Dormand–Prince 8 on T*SO(3) and G×g."""
 
