@@ -164,6 +164,13 @@ def assert_embedding_field_is(formula, scene, t, y, args, atol=1e-13):
         np.testing.assert_allclose(pk.scenes.derived_embedding_field(scene, t, z, args), expected, atol=atol)
 
 
+def bjorck_step(matrix):
+    """One step of Björck's orthogonalisation, Q(3I − QᵀQ)/2, written out:
+    the correction a drifted rotation is expected to receive."""
+    gram = jnp.swapaxes(matrix, -1, -2) @ matrix
+    return matrix @ (3 * jnp.eye(matrix.shape[-1], dtype=matrix.dtype) - gram) / 2
+
+
 def max_leaf_difference(a, b) -> float:
     """max |a − b| over the entries of two pytrees of the same structure."""
     return max(float(jnp.max(jnp.abs(x - y))) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import FORCED_ARGS, TOP_ARGS, max_leaf_difference
+from helpers import FORCED_ARGS, TOP_ARGS, bjorck_step, max_leaf_difference
 from prkmk_jax.exact_flows import rotated_array, rotated_rows
 from prkmk_jax.groups import sincos
 from prkmk_jax.scenes import (
@@ -285,7 +285,6 @@ def test_renormalized_rotations_is_a_bjorck_step_on_each_matrix():
     ulps of the group left as they are; it commutes with relabelling the
     columns, as the packed states of the splittings have them."""
     from prkmk_jax.exact_flows import renormalized_rotations
-    from prkmk_jax.groups._util import bjorck_step
 
     rng = np.random.default_rng(3)
     matrices = np.stack([[random_rotation(7 * b + k) for k in range(2)] for b in range(5)]) + 1e-3 * rng.standard_normal((5, 2, 3, 3))
