@@ -40,9 +40,9 @@ KINDS = {
     "PRKMK SV, Cayley": (FREE, pk.PRKMK(COTANGENT, pk.Cayley(), pk.stormer_verlet, form="body"), INERTIA),
     "PRKMK Lobatto 4": (FREE, pk.PRKMK(COTANGENT, pk.Exp(), pk.lobatto_iiia_iiib4, form="body"), INERTIA),
     "RKMK 8, stages unrolled": (TOP, TOP.method(pk.dormand_prince_8, pk.Cayley()), TOP_ARGS),
-    "RKMK 8, stages in a loop": (
+    "RKMK 4, stages in a loop": (
         TOP,
-        pk.PRKMK(TOP.bundle, pk.Cayley(), pk.dormand_prince_8, form="body", explicit_stages="loop"),
+        pk.PRKMK(TOP.bundle, pk.Cayley(), pk.tableaus.classical_rk4, form="body", explicit_stages="loop"),
         TOP_ARGS,
     ),
     "Composition of SV": (FREE, pk.Composition(SV, pk.kahan_li_6), INERTIA),
@@ -57,7 +57,7 @@ KINDS = {
         INERTIA,
     ),
     "Splitting, free body": (FREE, FREE.splitting(pk.suzuki_5), INERTIA),
-    "Splitting, symmetric body": (SYMMETRIC, SYMMETRIC.splitting(pk.suzuki_5), INERTIA),
+    "Splitting, symmetric body": (SYMMETRIC, SYMMETRIC.splitting(), INERTIA),
 }
 
 

@@ -203,7 +203,7 @@ def test_a_batch_in_the_state_and_vmap_give_the_single_runs(name):
 REVERSE_VARIANTS = {  # name: (coefficients, coordinates)
     "Strang": (None, pk.Exp()),
     "Cayley": (None, pk.Cayley()),
-    "Suzuki 5": (pk.suzuki_5, pk.Exp()),
+    "triple jump": (pk.yoshida_triple_jump, pk.Exp()),
 }
 
 
@@ -211,7 +211,7 @@ REVERSE_VARIANTS = {  # name: (coefficients, coordinates)
     "name, variant, batch",
     [(name, "Strang", 3) for name in CASES]
     # The coordinates and the composition do not depend on the scene: one each.
-    + [("heavy top", "Cayley", 3), ("free body", "Suzuki 5", 1)],
+    + [("heavy top", "Cayley", 3), ("free body", "triple jump", 1)],
 )
 def test_reverse_step_undoes_the_step_and_gives_its_vjp(name, variant, batch):
     """`Splitting.reverse_step` from a step's end: the step's start (to
