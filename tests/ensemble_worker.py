@@ -7,8 +7,9 @@ devices each (JAX's distributed runtime, gloo collectives on CPU): the
 final states by `integrate` and by `diffeqsolve`, the batch's largest
 energy error, and a batch loss with its gradient in the inertia. Process 0
 writes what `gather` returns, every process what `local_rows` returns.
-`--fault` makes process 1 misbehave: `duplicate` passes process 0's rows,
-`drop` passes none, `crash` exits before the batch is built.
+`--fault` makes process 1 misbehave: `duplicate` passes process 0's rows
+(and only the scan's final states are gathered), `drop` passes none,
+`crash` exits before the batch is built.
 """
 
 import argparse
@@ -88,6 +89,13 @@ def main() -> None:
         return jnp.mean(weights * final.fiber[:, 0])
 
     scan_final = jax.jit(pk.vmap_over_devices(by_scan, in_axes=(0, None)))(y0, inertia)
+    if opts.fault == "duplicate":  # what is gathered is all the test looks at
+        gathered = pk.gather(scan_final)
+        if opts.process_id == 0:
+            opts.out.mkdir(parents=True, exist_ok=True)
+            np.savez(opts.out / "gathered.npz", scan_attitude=gathered.base.matrix, scan_moment=gathered.fiber)
+        print(f"process {opts.process_id} done", flush=True)
+        return
     diffrax_final = jax.jit(pk.vmap_over_devices(by_diffrax, in_axes=(0, None)))(y0, inertia)
     worst_energy = jax.jit(lambda y, i: jnp.max(pk.vmap_over_devices(energy_error, in_axes=(0, None))(y, i)))(y0, inertia)
     value, grad = jax.jit(jax.value_and_grad(loss))(inertia, y0)

@@ -27,7 +27,7 @@ CASES = {
     "Lobatto 4, forced body": (pk.PRKMK(COTANGENT, pk.Exp(), pk.lobatto_iiia_iiib4, form="body"), forced_body),
     "SV∘Suzuki 5, forced body": (pk.Composition(SV, pk.suzuki_5), forced_body),
 }
-DT, SAVE_EVERY, NUM_SAVES = 0.07, 3, 3
+DT, SAVE_EVERY, NUM_SAVES = 0.07, 3, 2
 
 
 def _assert_identical(a, b):
