@@ -16,6 +16,12 @@
    in alternation; time a step, loop over unrolled, and compile times: the
    rows that check the default ("auto": the loop from `STAGE_LOOP_BATCH`
    trajectories in the state on).
+4. The splittings' sines and cosines: the Strang and Kahan–Li 6 splittings
+   of the free body, one trajectory and a batch of 1024 in the state, in
+   float64 and float32, each rotation turned through `groups.sincos` (what
+   `Exp` does) or through `jnp.sin` and `jnp.cos` (a chart that is `Exp`
+   otherwise), in alternation: time a step, and the ratio; the row that
+   checks `Exp.planar_rotation`.
 
     python benchmarks/throughput.py
     python benchmarks/throughput.py --quick
@@ -25,6 +31,7 @@ import functools
 import json
 import statistics
 from pathlib import Path
+from typing import ClassVar
 
 import diffrax
 import jax
@@ -165,6 +172,57 @@ def stage_layouts(quick, rounds):
     return rows
 
 
+class _LibrarySines(pk.AbstractCoordinates):
+    """`Exp`, except that a splitting's planar rotations take `jnp.sin` and
+    `jnp.cos` of the angle instead of `groups.sincos`."""
+
+    maps_lines_to_subgroups: ClassVar[bool] = True
+    truncation: None = None
+
+    def group_map(self, group, u):
+        return pk.Exp().group_map(group, u)
+
+    def group_inverse_map(self, g):
+        return pk.Exp().group_inverse_map(g)
+
+    def group_inverse_differential(self, group, u, x):
+        return pk.Exp().group_inverse_differential(group, u, x)
+
+    def planar_rotation(self, angle):
+        return pk.groups.computed_once(jnp.sin(angle), jnp.cos(angle))
+
+
+def rotations(quick, rounds):
+    rows = []
+    splittings = {"Strang": None, "Kahan–Li 6": pk.kahan_li_6}
+    for batch in [8] if quick else [1, 1024]:
+        steps = 10 if quick else max(50, 4000 // batch)
+        qs, pis = C.initial_conditions(batch, seed=3)
+        for dtype in (jnp.float64, jnp.float32):
+            args = (jnp.asarray(qs, dtype), jnp.asarray(pis, dtype), jnp.asarray(C.INERTIA, dtype))
+            for split_name, coefficients in list(splittings.items())[:1] if quick else splittings.items():
+                compiled = {}
+                for sines, coordinates in (("sincos", pk.Exp()), ("jnp.sin, jnp.cos", _LibrarySines())):
+                    final = C.integrate_final(C.SCENE.splitting(coefficients, coordinates), steps, H)
+                    compiled[sines], _ = C.compile_fn(final, *args)
+                    jax.block_until_ready(compiled[sines](*args))
+                times = C.interleaved_times({k: functools.partial(f, *args) for k, f in compiled.items()}, rounds=rounds)
+                row = dict(
+                    splitting=split_name,
+                    batch=batch,
+                    dtype=jnp.dtype(dtype).name,
+                    step_us={k: 1e6 * statistics.median(v) / steps for k, v in times.items()},
+                    sincos_over_library=C.median_ratio(times, "sincos", "jnp.sin, jnp.cos"),
+                )
+                rows.append(row)
+                print(
+                    f"{split_name:11s} batch {batch:5d} {row['dtype']:8s} step sincos {row['step_us']['sincos']:9.2f} µs  "
+                    f"jnp.sin/cos {row['step_us']['jnp.sin, jnp.cos']:9.2f} µs  sincos / jnp {row['sincos_over_library']:5.2f}",
+                    flush=True,
+                )
+    return rows
+
+
 def throughput_table(results: Path) -> str:
     """`throughput.py`: trajectory-steps per second against the batch, compile
     time against the number of stages, and the explicit stage layouts (each
@@ -204,6 +262,21 @@ def throughput_table(results: Path) -> str:
         header = ["bundle", "tableau", "batch in the state", "µs a step, unrolled", "µs a step, loop", "loop / unrolled"]
         header.append("compile, s (unrolled / loop)")
         tables += ["The explicit stage layouts. " + C.measured_on(layouts), C.table(header, rows)]
+    if "rotations" in data:
+        part = data["rotations"]
+        rows = [
+            [
+                r["splitting"],
+                str(r["batch"]),
+                r["dtype"],
+                f"{r['step_us']['sincos']:.2f}",
+                f"{r['step_us']['jnp.sin, jnp.cos']:.2f}",
+                f"{r['sincos_over_library']:.2f}",
+            ]
+            for r in part["rows"]
+        ]
+        header = ["splitting", "batch in the state", "dtype", "µs a step, sincos", "µs a step, jnp.sin/cos", "sincos / jnp"]
+        tables += ["The splittings' sines and cosines. " + C.measured_on(part), C.table(header, rows)]
     return "\n\n".join(tables)
 
 
@@ -213,7 +286,7 @@ def tables(results: Path) -> dict[str, str]:
 
 
 def main(argv=None):
-    all_parts = ("throughput", "compile", "layouts")
+    all_parts = ("throughput", "compile", "layouts", "rotations")
     args, out = C.cli(__doc__, argv, lambda p: p.add_argument("--parts", default=",".join(all_parts)))
     rounds = 1 if args.quick else 7
     parts = args.parts.split(",")
@@ -228,6 +301,8 @@ def main(argv=None):
         result["compile_vs_stages"] = compile_vs_stages(args.quick)
     if "layouts" in parts:
         result["stage_layouts"] = dict(machine=C.machine(), rows=stage_layouts(args.quick, rounds))
+    if "rotations" in parts:
+        result["rotations"] = dict(machine=C.machine(), rows=rotations(args.quick, rounds))
     with open(out / "throughput.json", "w") as f:
         json.dump(result, f, indent=1)
     if "throughput" in parts:
