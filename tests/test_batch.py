@@ -29,9 +29,13 @@ def test_sharded_batch_equals_unsharded_on_four_devices():
     def diffrax_run(y0, inertia):
         return diffrax.diffeqsolve(pk.PRKMKTerm(field), pk.PRKMKSolver(method), 0.0, 1.0, 0.01, y0, inertia).ys
 
-    for run, routes in ((scan_run, (jax.vmap, pk.vmap_over_devices)), (diffrax_run, (pk.vmap_over_devices,))):
+    scan_over_devices = jax.jit(pk.vmap_over_devices(scan_run))  # run again below on a broken batch
+    for run, routes in (
+        (scan_run, (jax.jit(jax.vmap(scan_run)), scan_over_devices)),
+        (diffrax_run, (jax.jit(pk.vmap_over_devices(diffrax_run)),)),
+    ):
         plain = jax.jit(jax.vmap(run))(y0s, inertias)
-        for batched in (jax.jit(route(run)) for route in routes):
+        for batched in routes:
             sharded = batched(pk.shard_batch(y0s), pk.shard_batch(inertias))
             out = sharded.fiber
             assert len(out.sharding.device_set) == 4, out.sharding
@@ -59,7 +63,7 @@ def test_sharded_batch_equals_unsharded_on_four_devices():
     # The run-time checks still raise on each device's rows.
     broken = pk.shard_batch(eqx.tree_at(lambda y: y.fiber, y0s, y0s.fiber.at[5, 0].set(jnp.nan)))
     try:
-        jax.block_until_ready(jax.jit(pk.vmap_over_devices(scan_run))(broken, inertias))
+        jax.block_until_ready(scan_over_devices(broken, inertias))
     except Exception as error:
         assert "not finite" in str(error), error
     else:
