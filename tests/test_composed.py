@@ -186,24 +186,6 @@ def test_symmetry_defect(bundle, method, symmetric):
         assert defects[0] > defects[1]  # O(h^{p+1}) → 0 with h
 
 
-def test_symmetry_defect_compiles_once_per_method():
-    """Another step size or start time is data: the second call compiles nothing."""
-    field, y0, method = rigid_body_field(COTANGENT, "body"), initial_state(COTANGENT), _prkmk(COTANGENT)
-    first = float(pk.symmetry_defect(method, field, y0, 0.2, ARGS))
-    compiles = []
-
-    def listener(event, duration, **_):
-        if event == "/jax/core/compile/backend_compile_duration":
-            compiles.append(duration)
-
-    jax.monitoring.register_event_duration_secs_listener(listener)
-    try:
-        second = float(pk.symmetry_defect(method, field, y0, 0.1, ARGS, t=0.5))
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listener)
-    assert compiles == [] and first != second
-
-
 # --- orders ---------------------------------------------------------------------------------
 # Störmer–Verlet at Exp()'s default truncation is symmetric on T*SO(3) for the
 # free body (`test_symmetry_defect`), so its compositions may claim the
