@@ -186,7 +186,8 @@ SWEEPS = {
 }
 
 
-QUICK_SKIPS = ("splitting order 6", "splitting order 8")
+# --quick runs one method of each kind (the code each kind runs is the same).
+QUICK_SKIPS = ("splitting order 4", "splitting order 6", "splitting order 8", "PRKMK Lobatto 6", "Tsit5 fixed", "Tsit5 PID")
 
 
 @functools.cache

@@ -295,23 +295,3 @@ def test_composition_gradient_matches_finite_differences_and_vmaps():
     batch = jnp.asarray(y0.fiber) * jnp.array([[1.0], [0.9], [1.1]])
     values = jax.jit(jax.vmap(loss, in_axes=(None, 0)))(ARGS, batch)
     np.testing.assert_allclose(values, [loss_j(ARGS, p) for p in batch], rtol=0, atol=1e-13)
-
-
-def test_composition_through_diffeqsolve_gradient_matches_finite_differences():
-    """Gradients through diffeqsolve's default adjoint match finite differences."""
-    field = rigid_body_field(COTANGENT, "body")
-    y0 = initial_state(COTANGENT)
-    solver = pk.PRKMKSolver(pk.Composition(_SV_COT, pk.yoshida_triple_jump))
-
-    def final(inertia, pi0, t1=1.0, dt=0.1):
-        sol = diffrax.diffeqsolve(pk.PRKMKTerm(field), solver, 0.0, t1, dt, pk.BundleElement(y0.base, pi0), inertia, max_steps=16)
-        return jax.tree.map(lambda a: a[-1], sol.ys)
-
-    def loss(inertia):
-        return jnp.sum(final(inertia, y0.fiber).base.matrix[:, 2] * jnp.array([0.3, -0.5, 0.8]))
-
-    grad = jax.jit(jax.grad(loss))(ARGS)
-    loss_j = jax.jit(loss)
-    eps = 1e-5
-    fd = np.array([(loss_j(ARGS + eps * e) - loss_j(ARGS - eps * e)) / (2 * eps) for e in jnp.eye(3)])
-    np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-9 * np.abs(fd).max())

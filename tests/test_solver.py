@@ -239,28 +239,3 @@ def test_pid_controller_reaches_the_tolerance():
         steps.append(int(sol.stats["num_accepted_steps"]))
     assert steps[0] < steps[1] < steps[2]
     assert solver.error_order(TERM) == 5 and pk.PRKMKSolver(_method()).error_order(TERM) is None
-
-
-def test_gradients_wrt_initial_momentum_and_inertia_under_vmap():
-    y0 = initial_state(COTANGENT)
-    method = _method(pk.stormer_verlet)
-
-    def loss(pi0, inertia):
-        sol = _solve(method, 1.0, 0.05, pk.BundleElement(y0.base, pi0), inertia, max_steps=32)
-        return jnp.sum(sol.ys.base.matrix[-1, :, 0] * jnp.array([0.3, -0.5, 0.8])) + jnp.sum(sol.ys.fiber[-1] ** 2)
-
-    scale = jnp.array([[1.0], [0.8], [1.25]])
-    pis, inertias = jnp.asarray(y0.fiber) * scale, jnp.asarray(INERTIA) * scale[::-1]
-    grads = jax.jit(jax.vmap(jax.grad(loss, argnums=(0, 1))))(pis, inertias)
-    loss_j = jax.jit(loss)
-    eps = 1e-5
-    for b in range(3):
-        for arg, grad in enumerate(grads):
-
-            def shifted(e, sign, b=b, arg=arg):
-                point = [pis[b], inertias[b]]
-                point[arg] = point[arg] + sign * eps * e
-                return loss_j(*point)
-
-            fd = np.array([(shifted(e, 1) - shifted(e, -1)) / (2 * eps) for e in jnp.eye(3)])
-            np.testing.assert_allclose(grad[b], fd, rtol=1e-6, atol=1e-9 * np.abs(fd).max())
