@@ -90,34 +90,16 @@ def throughput(quick, rounds):
             args_of[name] = (jnp.asarray(qs, dtype), jnp.asarray(pis, dtype), jnp.asarray(C.INERTIA, dtype))
             compiled[name], compile_s[name] = C.compile_fn(jax.vmap(run, in_axes=(0, 0, None)), *args_of[name])
             iterations[name] = jax.block_until_ready(compiled[name](*args_of[name]))[1]
-        # The four columns run in alternation, one of each per round, so that
-        # a slow spell of the machine (or of this process) hits all of them;
-        # each is bound to its own arguments (the float32 column has its own).
+        # In alternation, so that a slow spell of the machine hits all four; each with its own arguments.
         bound = {name: functools.partial(fn, *args_of[name]) for name, fn in compiled.items()}
         times = C.interleaved_times(bound, rounds=rounds)
         for name in columns:
-            wall = statistics.median(times[name])
-            rate = batch * steps / wall
-            iters = iterations[name]
+            wall, iters = statistics.median(times[name]), iterations[name]
             iters_per_step = float(jnp.mean(iters)) / steps if jnp.all(jnp.isfinite(iters)) else float("nan")
-            rows.append(
-                dict(
-                    batch=batch,
-                    method=name,
-                    steps=steps,
-                    wall_s=wall,
-                    compile_s=compile_s[name],
-                    traj_steps_per_s=rate,
-                    iterations_per_step=iters_per_step,
-                    over_tsit5=C.median_ratio(times, name, "diffrax Tsit5 (embedding)"),
-                )
-            )
-            print(
-                f"batch {batch:6d} {name:28s} steps={steps:4d} wall={wall:8.4f}s  {rate:10.3e} "
-                f"traj-steps/s  time / Tsit5 {rows[-1]['over_tsit5']:5.2f}  compile {compile_s[name]:5.2f}s  "
-                f"iterations/step {iters_per_step:.1f}",
-                flush=True,
-            )
+            over_tsit5 = C.median_ratio(times, name, "diffrax Tsit5 (embedding)")
+            row = dict(batch=batch, method=name, steps=steps, wall_s=wall, compile_s=compile_s[name], traj_steps_per_s=batch * steps / wall)
+            rows.append(row | dict(iterations_per_step=iters_per_step, over_tsit5=over_tsit5))
+            print(f"batch {batch:6d} {name:28s} {row['traj_steps_per_s']:10.3e} traj-steps/s  time / Tsit5 {over_tsit5:5.2f}", flush=True)
     return rows
 
 
@@ -135,6 +117,19 @@ def compile_vs_stages(quick):
     return rows
 
 
+def _side_by_side(finals, args, steps, rounds):
+    """Compile each of `finals` ({name: (Q₀, Π₀, inertia) -> …}, two of
+    them) and run them in alternation: µs a step of each, the first's time
+    over the second's (the median per-round ratio), and compile seconds."""
+    compiled, compile_s = {}, {}
+    for name, final in finals.items():
+        compiled[name], compile_s[name] = C.compile_fn(final, *args)
+        jax.block_until_ready(compiled[name](*args))
+    times = C.interleaved_times({k: functools.partial(f, *args) for k, f in compiled.items()}, rounds=rounds)
+    first, second = finals
+    return {k: 1e6 * statistics.median(v) / steps for k, v in times.items()}, C.median_ratio(times, first, second), compile_s
+
+
 def stage_layouts(quick, rounds):
     rows = []
     bundles = {"T*SO(3)": pk.Cotangent(pk.SO3), "G×g": pk.DirectProduct(pk.SO3)}
@@ -148,27 +143,21 @@ def stage_layouts(quick, rounds):
         for bundle_name, bundle in bundles.items():
             scene = FreeRigidBody(bundle)
             for tableau_name, tableau in tableaus.items():
-                compiled, compile_s = {}, {}
-                for layout in ("unrolled", "loop"):
-                    final = C.integrate_final(scene.method(tableau, explicit_stages=layout), steps, H, scene=scene)
-                    compiled[layout], compile_s[layout] = C.compile_fn(final, *args)
-                    jax.block_until_ready(compiled[layout](*args))
-                times = C.interleaved_times({k: functools.partial(f, *args) for k, f in compiled.items()}, rounds=rounds)
-                row = dict(
-                    bundle=bundle_name,
-                    tableau=tableau_name,
-                    batch=batch,
-                    step_us={k: 1e6 * statistics.median(v) / steps for k, v in times.items()},
-                    loop_over_unrolled=C.median_ratio(times, "loop", "unrolled"),
-                    compile_s=compile_s,
+                finals = {
+                    k: C.integrate_final(scene.method(tableau, explicit_stages=k), steps, H, scene=scene) for k in ("loop", "unrolled")
+                }
+                step_us, ratio, compile_s = _side_by_side(finals, args, steps, rounds)
+                rows.append(
+                    dict(
+                        bundle=bundle_name,
+                        tableau=tableau_name,
+                        batch=batch,
+                        step_us=step_us,
+                        loop_over_unrolled=ratio,
+                        compile_s=compile_s,
+                    )
                 )
-                rows.append(row)
-                print(
-                    f"{bundle_name:8s} {tableau_name:5s} batch {batch:5d}  step unrolled {row['step_us']['unrolled']:9.1f} µs  "
-                    f"loop {row['step_us']['loop']:9.1f} µs  loop/unrolled {row['loop_over_unrolled']:5.2f}  "
-                    f"compile {compile_s['unrolled']:5.2f}s / {compile_s['loop']:5.2f}s",
-                    flush=True,
-                )
+                print(f"{bundle_name:8s} {tableau_name:5s} batch {batch:5d}  µs a step {step_us}  loop/unrolled {ratio:5.2f}  {compile_s}")
     return rows
 
 
@@ -201,25 +190,11 @@ def rotations(quick, rounds):
         for dtype in (jnp.float64,) if quick else (jnp.float64, jnp.float32):
             args = (jnp.asarray(qs, dtype), jnp.asarray(pis, dtype), jnp.asarray(C.INERTIA, dtype))
             for split_name, coefficients in list(splittings.items())[:1] if quick else splittings.items():
-                compiled = {}
-                for sines, coordinates in (("sincos", pk.Exp()), ("jnp.sin, jnp.cos", _LibrarySines())):
-                    final = C.integrate_final(C.SCENE.splitting(coefficients, coordinates), steps, H)
-                    compiled[sines], _ = C.compile_fn(final, *args)
-                    jax.block_until_ready(compiled[sines](*args))
-                times = C.interleaved_times({k: functools.partial(f, *args) for k, f in compiled.items()}, rounds=rounds)
-                row = dict(
-                    splitting=split_name,
-                    batch=batch,
-                    dtype=jnp.dtype(dtype).name,
-                    step_us={k: 1e6 * statistics.median(v) / steps for k, v in times.items()},
-                    sincos_over_library=C.median_ratio(times, "sincos", "jnp.sin, jnp.cos"),
-                )
-                rows.append(row)
-                print(
-                    f"{split_name:11s} batch {batch:5d} {row['dtype']:8s} step sincos {row['step_us']['sincos']:9.2f} µs  "
-                    f"jnp.sin/cos {row['step_us']['jnp.sin, jnp.cos']:9.2f} µs  sincos / jnp {row['sincos_over_library']:5.2f}",
-                    flush=True,
-                )
+                charts = {"sincos": pk.Exp(), "jnp.sin, jnp.cos": _LibrarySines()}
+                finals = {k: C.integrate_final(C.SCENE.splitting(coefficients, chart), steps, H) for k, chart in charts.items()}
+                (step_us, ratio, _), dtype_name = _side_by_side(finals, args, steps, rounds), jnp.dtype(dtype).name
+                rows.append(dict(splitting=split_name, batch=batch, dtype=dtype_name, step_us=step_us, sincos_over_library=ratio))
+                print(f"{split_name:11s} batch {batch:5d} {dtype_name:8s} µs a step {step_us}  sincos / jnp {ratio:5.2f}", flush=True)
     return rows
 
 
@@ -245,38 +220,26 @@ def throughput_table(results: Path) -> str:
     if "compile_vs_stages" in data:
         rows = [[r["tableau"], str(r["stages"]), r["path"], f"{r['compile_s']:.2f}"] for r in data["compile_vs_stages"]]
         tables.append(C.table(["tableau", "stages", "path", "compile, s"], rows))
-    if "stage_layouts" in data:
-        layouts = data["stage_layouts"]
+    two_ways = {  # part: (title, the rows' keys, the two ways, the ratio's key and column)
+        "stage_layouts": ("The explicit stage layouts. ", "bundle tableau batch", "unrolled|loop", "loop_over_unrolled", "loop / unrolled"),
+        "rotations": (
+            "The splittings' sines and cosines. ",
+            "splitting batch dtype",
+            "sincos|jnp.sin, jnp.cos",
+            "sincos_over_library",
+            "sincos / jnp",
+        ),
+    }
+    for part, (title, keys, ways, ratio, ratio_column) in ((p, w) for p, w in two_ways.items() if p in data):
+        (a, b), keys = ways.split("|"), keys.split()
+        header = [k.replace("batch", "batch in the state") for k in keys] + [f"µs a step, {a}", f"µs a step, {b}", ratio_column]
         rows = [
-            [
-                r["bundle"],
-                r["tableau"],
-                str(r["batch"]),
-                f"{r['step_us']['unrolled']:.1f}",
-                f"{r['step_us']['loop']:.1f}",
-                f"{r['loop_over_unrolled']:.2f}",
-                f"{r['compile_s']['unrolled']:.2f} / {r['compile_s']['loop']:.2f}",
-            ]
-            for r in layouts["rows"]
+            [str(r[k]) for k in keys] + [f"{r['step_us'][a]:.3g}", f"{r['step_us'][b]:.3g}", f"{r[ratio]:.2f}"] for r in data[part]["rows"]
         ]
-        header = ["bundle", "tableau", "batch in the state", "µs a step, unrolled", "µs a step, loop", "loop / unrolled"]
-        header.append("compile, s (unrolled / loop)")
-        tables += ["The explicit stage layouts. " + C.measured_on(layouts), C.table(header, rows)]
-    if "rotations" in data:
-        part = data["rotations"]
-        rows = [
-            [
-                r["splitting"],
-                str(r["batch"]),
-                r["dtype"],
-                f"{r['step_us']['sincos']:.2f}",
-                f"{r['step_us']['jnp.sin, jnp.cos']:.2f}",
-                f"{r['sincos_over_library']:.2f}",
-            ]
-            for r in part["rows"]
-        ]
-        header = ["splitting", "batch in the state", "dtype", "µs a step, sincos", "µs a step, jnp.sin/cos", "sincos / jnp"]
-        tables += ["The splittings' sines and cosines. " + C.measured_on(part), C.table(header, rows)]
+        if part == "stage_layouts":
+            header.append(f"compile, s ({a} / {b})")
+            rows = [row + [f"{r['compile_s'][a]:.2f} / {r['compile_s'][b]:.2f}"] for row, r in zip(rows, data[part]["rows"])]
+        tables += [title + C.measured_on(data[part]), C.table(header, rows)]
     return "\n\n".join(tables)
 
 
