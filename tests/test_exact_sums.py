@@ -1,6 +1,6 @@
 """`_exact_sums.rounded_once_combination` against the exact rational value of
-dt·Σⱼ cⱼxⱼ (Python fractions), alone and fused into several consumers, in
-this process and under XLA's default code generator (where LLVM may
+dt·Σⱼ cⱼxⱼ (Python fractions), alone and fused into several consumers,
+under XLA's default code generator as the tests run (where LLVM may
 contract a·b + c into a fused multiply-add); and the PRKMK step's increment
 against the exact value from its own stage slopes."""
 
