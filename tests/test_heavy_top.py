@@ -118,8 +118,7 @@ def test_diffeqsolve_with_the_scene_as_term_and_gradient_in_the_parameters():
     np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-9)
 
 
-@pytest.mark.parametrize("tableau", [pk.stormer_verlet, pk.lobatto_iiia_iiib4], ids=["SV", "Lobatto 4"])
-def test_on_the_direct_product_the_lagrange_spin_is_kept_to_round_off(tableau):
+def test_on_the_direct_product_the_lagrange_spin_is_kept_to_round_off():
     """On G×g the fiber moves by h Σ bᵢ ηᵢ alone, and a Lagrange top's
     η₃ = Π₁Ω₂ − Π₂Ω₁ + Γ₁ℓ₂ − Γ₂ℓ₁ vanishes (I₁ = I₂, ℓ on e₃): the spin Π₃
     stays to round-off over 8000 steps. On T*SO(3) the product turns the
@@ -127,7 +126,7 @@ def test_on_the_direct_product_the_lagrange_spin_is_kept_to_round_off(tableau):
     h, n = 0.05, 8000
     spin_error = {}
     for top in (TOP_ON_G_X_G, TOP):
-        spin = pk.integrate(top.method(tableau), top, Y0, 0.0, h, n, LAGRANGE, save_every=20).ys.fiber[:, 2]
+        spin = pk.integrate(top.method(pk.stormer_verlet), top, Y0, 0.0, h, n, LAGRANGE, save_every=20).ys.fiber[:, 2]
         spin_error[top.bundle] = float(jnp.max(jnp.abs(spin - spin[0])))
     assert spin_error[TOP_ON_G_X_G.bundle] <= 1e-13, spin_error
     assert spin_error[TOP.bundle] > 1e-7, spin_error  # over T = 200 it was 1.7e-2 (SV) and 5.7e-6 (Lobatto 4)
