@@ -153,8 +153,8 @@ NEAR_PI_CASES = [
     for n in (3, 4, 5)
     for angles in (
         [(np.pi - d,) for d in (1e-9, 1e-6, 1e-2)]
-        # SO(4) meets every pair; SO(5), whose extra plane is at rest, a third of them.
-        + ([(np.pi - a, np.pi - b) for a, b in TWO_PLANES_FROM_PI[:: 1 if n == 4 else 3]] if n >= 4 else [])
+        # SO(4) meets every other pair; SO(5), whose extra plane is at rest, the others.
+        + ([(np.pi - a, np.pi - b) for a, b in TWO_PLANES_FROM_PI[n % 2 :: 2]] if n >= 4 else [])
         + ([(np.pi - 1e-9, 0.5)] if n >= 4 else [])
     )
 ]
