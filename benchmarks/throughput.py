@@ -147,16 +147,8 @@ def stage_layouts(quick, rounds):
                     k: C.integrate_final(scene.method(tableau, explicit_stages=k), steps, H, scene=scene) for k in ("loop", "unrolled")
                 }
                 step_us, ratio, compile_s = _side_by_side(finals, args, steps, rounds)
-                rows.append(
-                    dict(
-                        bundle=bundle_name,
-                        tableau=tableau_name,
-                        batch=batch,
-                        step_us=step_us,
-                        loop_over_unrolled=ratio,
-                        compile_s=compile_s,
-                    )
-                )
+                row = dict(bundle=bundle_name, tableau=tableau_name, batch=batch, step_us=step_us)
+                rows.append(row | dict(loop_over_unrolled=ratio, compile_s=compile_s))
                 print(f"{bundle_name:8s} {tableau_name:5s} batch {batch:5d}  µs a step {step_us}  loop/unrolled {ratio:5.2f}  {compile_s}")
     return rows
 
@@ -184,13 +176,13 @@ class _LibrarySines(pk.AbstractCoordinates):
 def rotations(quick, rounds):
     rows = []
     splittings = {"Strang": None, "Kahan–Li 6": pk.kahan_li_6}
+    charts = {"sincos": pk.Exp(), "jnp.sin, jnp.cos": _LibrarySines()}
     for batch in [8] if quick else [1, 1024]:
         steps = 10 if quick else max(50, 4000 // batch)
         qs, pis = C.initial_conditions(batch, seed=3)
         for dtype in (jnp.float64,) if quick else (jnp.float64, jnp.float32):
             args = (jnp.asarray(qs, dtype), jnp.asarray(pis, dtype), jnp.asarray(C.INERTIA, dtype))
             for split_name, coefficients in list(splittings.items())[:1] if quick else splittings.items():
-                charts = {"sincos": pk.Exp(), "jnp.sin, jnp.cos": _LibrarySines()}
                 finals = {k: C.integrate_final(C.SCENE.splitting(coefficients, chart), steps, H) for k, chart in charts.items()}
                 (step_us, ratio, _), dtype_name = _side_by_side(finals, args, steps, rounds), jnp.dtype(dtype).name
                 rows.append(dict(splitting=split_name, batch=batch, dtype=dtype_name, step_us=step_us, sincos_over_library=ratio))
@@ -221,17 +213,22 @@ def throughput_table(results: Path) -> str:
         rows = [[r["tableau"], str(r["stages"]), r["path"], f"{r['compile_s']:.2f}"] for r in data["compile_vs_stages"]]
         tables.append(C.table(["tableau", "stages", "path", "compile, s"], rows))
     two_ways = {  # part: (title, the rows' keys, the two ways, the ratio's key and column)
-        "stage_layouts": ("The explicit stage layouts. ", "bundle tableau batch", "unrolled|loop", "loop_over_unrolled", "loop / unrolled"),
+        "stage_layouts": (
+            "The explicit stage layouts. ",
+            ("bundle", "tableau", "batch"),
+            ("unrolled", "loop"),
+            "loop_over_unrolled",
+            "loop / unrolled",
+        ),
         "rotations": (
             "The splittings' sines and cosines. ",
-            "splitting batch dtype",
-            "sincos|jnp.sin, jnp.cos",
+            ("splitting", "batch", "dtype"),
+            ("sincos", "jnp.sin, jnp.cos"),
             "sincos_over_library",
             "sincos / jnp",
         ),
     }
-    for part, (title, keys, ways, ratio, ratio_column) in ((p, w) for p, w in two_ways.items() if p in data):
-        (a, b), keys = ways.split("|"), keys.split()
+    for part, (title, keys, (a, b), ratio, ratio_column) in ((p, w) for p, w in two_ways.items() if p in data):
         header = [k.replace("batch", "batch in the state") for k in keys] + [f"µs a step, {a}", f"µs a step, {b}", ratio_column]
         rows = [
             [str(r[k]) for k in keys] + [f"{r['step_us'][a]:.3g}", f"{r['step_us'][b]:.3g}", f"{r[ratio]:.2f}"] for r in data[part]["rows"]
