@@ -116,6 +116,26 @@ def test_gradient_in_the_lever_matches_finite_differences(through, batch, tablea
     np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-8)
 
 
+def test_a_vmapped_gradient_of_thirteen_stages_matches_finite_differences():
+    """Under vmap a step sees one trajectory and runs Dormand–Prince 8's
+    stages unrolled; its gradient (which takes them in a loop) in the
+    inertia, for each trajectory, equals central differences."""
+    scene = FreeRigidBody()
+    method = scene.method(pk.dormand_prince_8, pk.Cayley())
+    y0 = _batch_state(3)
+
+    def projection(y, inertia):
+        final = pk.integrate(method, scene, y, 0.0, 0.1, 20, inertia, save_every=20).ys.fiber[-1]
+        return jnp.sum(final * jnp.array([0.2, -0.5, 1.0]))
+
+    inertia = jnp.asarray(INERTIA)
+    grads = jax.jit(jax.vmap(jax.grad(projection, argnums=1), in_axes=(0, None)))(y0, inertia)
+    values = jax.jit(jax.vmap(projection, in_axes=(0, None)))
+    step = 1e-6
+    fd = np.stack([(values(y0, inertia + step * e) - values(y0, inertia - step * e)) / (2 * step) for e in np.eye(3)], axis=-1)
+    np.testing.assert_allclose(grads, fd, rtol=1e-6, atol=1e-8)
+
+
 def test_vmap_of_diffeqsolve_equals_the_batch_in_the_state():
     top = TOPS["direct product"]
     y0 = _batch_state(8)

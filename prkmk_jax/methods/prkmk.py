@@ -36,14 +36,13 @@ from ..coordinates import AbstractCoordinates, Exp
 from ..tableaus import PartitionedTableau, stormer_verlet
 from .adjoint import Adjoint
 from .base import RESULTS, AbstractMethod, Step, check_parts, flag_nonfinite
-from .stage_plan import COUPLED, Explicit, StageDependence, plan_stages, stage_dependence
+from .stage_plan import COUPLED, StageDependence, plan_stages, stage_dependence
 from .stage_solve import StageSolve
 from .stages import (
     check_stage_pairs,
-    explicit_slopes_in_loop,
+    explicit_slopes,
     extrapolated_guesses,
     slopes_by_plan,
-    stages_in_loop,
     start_side,
     static_combination,
 )
@@ -75,7 +74,8 @@ class PRKMK(AbstractMethod):
       from the field's program (`stage_plan`); `"tableau"` from A alone.
     - `explicit_stages`: an explicit tableau's stages `"unrolled"`, in a
       `"loop"`, or `"auto"` (default): the loop from `STAGE_LOOP_BATCH`
-      trajectories in the state on (docs: *Tableaus, order and compositions*).
+      trajectories in the state on (docs: *Tableaus, order and compositions*);
+      differentiated, the loop at every batch.
     """
 
     bundle: AbstractBundle
@@ -221,10 +221,9 @@ class PRKMK(AbstractMethod):
             return self.slope_at(vector_field, tt, (zeros[0] if u is None else u, v), y, args)
 
         plan = self.stage_plan(vector_field, t, y, args)
-        if stages_in_loop(self.explicit_stages, tab, zeros, self.bundle.base.algebra_ndim):
-            computed = {c for part in plan if isinstance(part, Explicit) for c in part.components}  # all explicit here
+        if tab.is_explicit:
             slope_at = lambda tt, U: self.slope_at(vector_field, tt, U, y, args)  # noqa: E731
-            slopes = list(explicit_slopes_in_loop(tab, stage_slope, slope_at, computed, t, dt, zeros))
+            slopes = explicit_slopes(self.explicit_stages, tab, plan, stage_slope, slope_at, t, dt, zeros, self.bundle.base.algebra_ndim)
             result, iterations = RESULTS.successful, jnp.array(0, jnp.int32)
         else:
             solve = lambda block_slopes, guess: self.stage_solve(block_slopes, guess, dtype, guess_solves=stages_solved)  # noqa: E731

@@ -6,6 +6,7 @@ import math
 from collections.abc import Callable
 from typing import Literal
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, PyTree
@@ -23,7 +24,8 @@ beyond it the arithmetic on the batch sets a step's time and the loop is
 as fast or faster (and a many-stage tableau compiles faster in the loop).
 `benchmarks/throughput.py`
 times both layouts at 1, 8, 16 and 1024 trajectories, for RK 4 and
-Dormand–Prince 8 on T*SO(3) and G×g."""
+Dormand–Prince 8 on T*SO(3) and G×g. Derivatives take the loop at every
+batch (`unrolled_unless_differentiated`)."""
 
 
 def check_stage_pairs(name, pairs, zeros, count=None):
@@ -100,6 +102,70 @@ def explicit_slopes_in_loop(tableau: PartitionedTableau, stage_slope, slope_at: 
 
     buffers = jax.lax.fori_loop(1, tab.num_stages, one_stage, tuple(buffers))
     return tuple(list(b) if c in computed else [None] * tab.num_stages for c, b in enumerate(buffers))
+
+
+def explicit_slopes(layout, tableau: PartitionedTableau, plan, stage_slope, slope_at: Callable, t, dt, zeros, algebra_ndim: int) -> list:
+    """The slopes of an explicit tableau ([K₁…K_s], [L₁…L_s], None for a
+    component the plan never computes): in a loop or unrolled as
+    `stages_in_loop` says, and in the loop wherever they are differentiated
+    (`unrolled_unless_differentiated`). `stage_slope(i, first, second)` and
+    `slope_at(time, (u, v))` as `PRKMK` gives them."""
+    computed = {c for part in plan if isinstance(part, Explicit) for c in part.components}
+
+    def loop():
+        return list(explicit_slopes_in_loop(tableau, stage_slope, slope_at, computed, t, dt, zeros))
+
+    if stages_in_loop(layout, tableau, zeros, algebra_ndim):
+        return loop()
+    unrolled = lambda: slopes_by_plan(plan, tableau.num_stages, stage_slope, None, None, zeros[0].dtype)[0]  # noqa: E731
+    return unrolled_unless_differentiated(unrolled, loop, tableau.num_stages)
+
+
+def unrolled_unless_differentiated(unrolled: Callable[[], list], loop: Callable[[], list], num_stages: int) -> list:
+    """The slopes of an explicit tableau ([K₁…K_s], [L₁…L_s], None where not
+    computed) as `unrolled()` gives them, and, where they are differentiated
+    (forward or reverse mode), as `loop()` (`explicit_slopes_in_loop`) does.
+
+    The two are the same function; what differs is the program XLA compiles
+    for the derivative. Unrolled, the derivative of all the stages at once
+    is one graph of small arithmetic that XLA's fusion copies into each of
+    its consumers (a gradient of Dormand–Prince 8 at one trajectory
+    compiles for minutes); in the loop it is one stage's derivative,
+    compiled once. A differentiated run's states then differ from the
+    plain run's in the last bits, as the two layouts' do."""
+    positions: list[tuple[int, int]] = []
+
+    def unrolled_leaves():
+        slopes = unrolled()
+        positions[:] = [(c, i) for c, part in enumerate(slopes) for i, slope in enumerate(part) if slope is not None]
+        return [slopes[c][i] for c, i in positions]
+
+    def loop_leaves():
+        slopes = loop()
+        return [slopes[c][i] for c, i in positions]
+
+    # Closure-converted, so that what the stages close over (the state, the
+    # field's parameters, `args`) enters the custom derivative as inputs.
+    value = eqx.filter_closure_convert(unrolled_leaves)
+    leaves = _differentiated_as(value, eqx.filter_closure_convert(loop_leaves))
+    slopes: list[list] = [[None] * num_stages, [None] * num_stages]
+    for (c, i), leaf in zip(positions, leaves, strict=True):
+        slopes[c][i] = leaf
+    return slopes
+
+
+@eqx.filter_custom_jvp
+def _differentiated_as(value, differentiated):
+    """`value()`; differentiated, `differentiated()` with its derivative."""
+    del differentiated
+    return value()
+
+
+@_differentiated_as.def_jvp
+def _differentiated_as_jvp(primals, tangents):
+    _, differentiated = primals
+    _, tangent = tangents
+    return eqx.filter_jvp(lambda f: f(), (differentiated,), (tangent,))
 
 
 def slopes_by_plan(plan, num_stages: int, stage_slope, guesses, solve, dtype):
