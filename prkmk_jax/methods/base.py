@@ -126,6 +126,30 @@ def flag_nonfinite(result: RESULTS, y) -> RESULTS:
     return first_failure(result, RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite))  # pyright: ignore[reportArgumentType]  # an Enumeration member is typed as its Literal
 
 
+def differentiated_as(value, differentiated):
+    """`value()`, and where it is differentiated (forward or reverse mode),
+    `differentiated()` with its derivative: two programs of one function (a
+    pytree of arrays), the second one whose derivative XLA compiles small
+    (stages or sub-steps in a loop rather than unrolled). Both are
+    closure-converted, so that what they close over (the state, the field's
+    parameters, `args`) enters the derivative as inputs; they must close
+    over the same values."""
+    return _differentiated_as(eqx.filter_closure_convert(value), eqx.filter_closure_convert(differentiated))
+
+
+@eqx.filter_custom_jvp
+def _differentiated_as(value, differentiated):
+    del differentiated
+    return value()
+
+
+@_differentiated_as.def_jvp
+def _differentiated_as_jvp(primals, tangents):
+    _, differentiated = primals
+    _, tangent = tangents
+    return eqx.filter_jvp(lambda f: f(), (differentiated,), (tangent,))
+
+
 class Step(eqx.Module):
     """One step of a method from (t, y) to t + dt (`AbstractMethod.step`)."""
 

@@ -39,7 +39,7 @@ from ..compositions import CompositionCoefficients
 from ..coordinates import AbstractCoordinates, Exp
 from ..exact_flows import AbstractSplitScene, renormalized_rotations
 from ..groups.trig import computed_once
-from .base import LOW_PRECISION_EPS, RESULTS, AbstractMethod, Step, check_parts, flag_nonfinite
+from .base import LOW_PRECISION_EPS, RESULTS, AbstractMethod, Step, check_parts, differentiated_as, flag_nonfinite
 
 
 def sub_steps(num_parts: int, fractions: tuple[float, ...], merge: bool) -> tuple[tuple[int, float, float], ...]:
@@ -75,7 +75,10 @@ class Splitting(AbstractMethod):
       symmetric composition of it (`suzuki_5`, `kahan_li_6`, `kahan_li_8`,
       …; order `coefficients.order`). The composed step is unrolled, and
       with a map that sends lines to subgroups (`Exp()`) adjacent flows of
-      the outermost part are merged.
+      the outermost part are merged; differentiated (`jax.grad`,
+      `jax.jvp`), its Strang steps run in a `lax.scan`, whose derivative
+      compiles as one Strang step's (its states then differ from the plain
+      run's in the last bits).
     - `coordinates`: `Exp()` (exact flows, default), `Cayley()` or any
       `AbstractCoordinates` (each rotation turned as its `planar_rotation` says).
 
@@ -152,10 +155,23 @@ class Splitting(AbstractMethod):
         # composed step has dozens), while a barrier after every sub-step
         # costs more than it saves within one Strang step.
         fused = 2 * len(flows) - 1
-        for k, (part, start, step) in enumerate(plan, start=1):
-            z = flows[part].flow(self.coordinates, t + start * dt, z, step * dt, args)
-            if flows[part].always_materialised or (k % fused == 0 and k < len(plan)):
-                z = jax.lax.optimization_barrier(z)
+
+        def unrolled():
+            z_k = z
+            for k, (part, start, step) in enumerate(plan, start=1):
+                z_k = flows[part].flow(self.coordinates, t + start * dt, z_k, step * dt, args)
+                if flows[part].always_materialised or (k % fused == 0 and k < len(plan)):
+                    z_k = jax.lax.optimization_barrier(z_k)
+            return z_k
+
+        # A composed step's derivative is that of its Strang steps in a
+        # `lax.scan`: unrolled, XLA compiles the derivative of dozens of
+        # sub-steps as one graph, many times larger (`differentiated_as`).
+        z = (
+            unrolled()
+            if self.coefficients is None
+            else differentiated_as(unrolled, lambda: self._strang_steps_in_loop(flows, t, dt, z, args))
+        )
         if jnp.finfo(dtype).eps > LOW_PRECISION_EPS:
             # As `AbstractMethod.advance`: the rounding of each rotation is
             # systematic for steady motions and would pull the state off the group.
@@ -174,6 +190,22 @@ class Splitting(AbstractMethod):
         if jnp.finfo(jnp.result_type(*jax.tree.leaves(y_next))).eps > LOW_PRECISION_EPS:
             return None
         return self.reverse_step(t, y_next, dt, args, cotangent)
+
+    def _strang_steps_in_loop(self, flows, t, dt, z, args):
+        """The composed step as a `lax.scan` of its Strang steps, no flows
+        merged (φ(a)∘φ(b) = φ(a + b)): the same map, whose derivative
+        compiles as one Strang step's."""
+        assert self.coefficients is not None
+        fractions = jnp.asarray(self.coefficients.fractions, dt.dtype)
+        starts = jnp.concatenate([jnp.zeros(1, dt.dtype), jnp.cumsum(fractions)[:-1]])
+
+        def strang_step(z, fraction_and_start):
+            fraction, start = fraction_and_start
+            for part, offset, step in sub_steps(len(flows), (1.0,), merge=False):
+                z = flows[part].flow(self.coordinates, t + (start + offset * fraction) * dt, z, step * fraction * dt, args)
+            return z, None
+
+        return jax.lax.scan(strang_step, z, (fractions, starts))[0]
 
     def _sub_steps(self, num_parts: int) -> tuple[tuple[int, float, float], ...]:
         """This method's sub-steps (`sub_steps`): its composition's fractions,

@@ -6,14 +6,13 @@ import math
 from collections.abc import Callable
 from typing import Literal
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, PyTree
 
 from .._bundles import AlgebraPair
 from ..tableaus import PartitionedTableau
-from .base import RESULTS, first_failure
+from .base import RESULTS, differentiated_as, first_failure
 from .stage_plan import Explicit
 
 STAGE_LOOP_BATCH = 16
@@ -144,28 +143,11 @@ def unrolled_unless_differentiated(unrolled: Callable[[], list], loop: Callable[
         slopes = loop()
         return [slopes[c][i] for c, i in positions]
 
-    # Closure-converted, so that what the stages close over (the state, the
-    # field's parameters, `args`) enters the custom derivative as inputs.
-    value = eqx.filter_closure_convert(unrolled_leaves)
-    leaves = _differentiated_as(value, eqx.filter_closure_convert(loop_leaves))
+    leaves = differentiated_as(unrolled_leaves, loop_leaves)
     slopes: list[list] = [[None] * num_stages, [None] * num_stages]
     for (c, i), leaf in zip(positions, leaves, strict=True):
         slopes[c][i] = leaf
     return slopes
-
-
-@eqx.filter_custom_jvp
-def _differentiated_as(value, differentiated):
-    """`value()`; differentiated, `differentiated()` with its derivative."""
-    del differentiated
-    return value()
-
-
-@_differentiated_as.def_jvp
-def _differentiated_as_jvp(primals, tangents):
-    _, differentiated = primals
-    _, tangent = tangents
-    return eqx.filter_jvp(lambda f: f(), (differentiated,), (tangent,))
 
 
 def slopes_by_plan(plan, num_stages: int, stage_slope, guesses, solve, dtype):
