@@ -93,10 +93,10 @@ def _final_momentum_projection(method, field, y0, args, through):
 
 @pytest.mark.parametrize(
     "through, batch, tableau",
-    # Both layouts differentiated with RK 4 (DP 8's 13 stages are the same
-    # code, and compile several times slower): the unrolled one through
-    # integrate, the loop (a batch of 16) through diffeqsolve, whose stages
-    # are integrate's (`test_vmap_of_diffeqsolve_equals_the_batch_in_the_state`).
+    # RK 4 at one trajectory through integrate (plain runs unrolled, the
+    # gradient through the loop: finite differences of the one against the
+    # other) and a batch of 16 (the loop throughout) through diffeqsolve,
+    # whose stages are integrate's (`test_vmap_of_diffeqsolve_equals_the_batch_in_the_state`).
     [("integrate", None, pk.classical_rk4), ("diffeqsolve", 16, pk.classical_rk4)],
     ids=["one (unrolled), RK 4-integrate", "batch 16 (loop), RK 4-diffeqsolve"],
 )
