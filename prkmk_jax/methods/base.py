@@ -126,6 +126,14 @@ def flag_nonfinite(result: RESULTS, y) -> RESULTS:
     return first_failure(result, RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite))  # pyright: ignore[reportArgumentType]  # an Enumeration member is typed as its Literal
 
 
+def fractions_and_starts(coefficients, dtype) -> tuple[Array, Array]:
+    """A composition's step fractions γ₁…γ_m and where each of its steps
+    starts, Σ_{j<k} γ_j, both in units of h, as arrays of `dtype` (the
+    inputs of a `lax.scan` over the composed steps)."""
+    fractions = jnp.asarray(coefficients.fractions, dtype)
+    return fractions, jnp.concatenate([jnp.zeros(1, dtype), jnp.cumsum(fractions)[:-1]])
+
+
 def differentiated_as(value, differentiated):
     """`value()`, and where it is differentiated (forward or reverse mode),
     `differentiated()` with its derivative: two programs of one function (a

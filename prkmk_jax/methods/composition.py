@@ -12,7 +12,7 @@ import jax.numpy as jnp
 
 from ..compositions import CompositionCoefficients
 from .adjoint import AbstractMadeOfSteps
-from .base import RESULTS, AbstractMethod, Step, batched_like, compensated, first_failure, no_compensation
+from .base import RESULTS, AbstractMethod, Step, batched_like, compensated, first_failure, fractions_and_starts, no_compensation
 
 
 class Composition(AbstractMadeOfSteps):
@@ -78,8 +78,7 @@ class Composition(AbstractMadeOfSteps):
         dtype = jnp.result_type(*jax.tree.leaves(y))
         dt = jnp.asarray(dt, dtype)
         t = jnp.asarray(t, dtype)
-        fractions = jnp.asarray(self.coefficients.fractions, dtype)
-        starts = jnp.concatenate([jnp.zeros(1, dtype), jnp.cumsum(fractions)[:-1]])
+        fractions, starts = fractions_and_starts(self.coefficients, dtype)
 
         sums = []  # whether the sub-step hands on a rounding, seen as the scan traces it
 

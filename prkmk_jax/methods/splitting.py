@@ -39,7 +39,7 @@ from ..compositions import CompositionCoefficients
 from ..coordinates import AbstractCoordinates, Exp
 from ..exact_flows import AbstractSplitScene, renormalized_rotations
 from ..groups.trig import computed_once
-from .base import LOW_PRECISION_EPS, RESULTS, AbstractMethod, Step, check_parts, differentiated_as, flag_nonfinite
+from .base import LOW_PRECISION_EPS, RESULTS, AbstractMethod, Step, check_parts, differentiated_as, flag_nonfinite, fractions_and_starts
 
 
 def sub_steps(num_parts: int, fractions: tuple[float, ...], merge: bool) -> tuple[tuple[int, float, float], ...]:
@@ -196,8 +196,7 @@ class Splitting(AbstractMethod):
         merged (φ(a)∘φ(b) = φ(a + b)): the same map, whose derivative
         compiles as one Strang step's."""
         assert self.coefficients is not None
-        fractions = jnp.asarray(self.coefficients.fractions, dt.dtype)
-        starts = jnp.concatenate([jnp.zeros(1, dt.dtype), jnp.cumsum(fractions)[:-1]])
+        fractions, starts = fractions_and_starts(self.coefficients, dt.dtype)
 
         def strang_step(z, fraction_and_start):
             fraction, start = fraction_and_start
