@@ -20,13 +20,15 @@ Flows act on the state packed as one array with its components first
 (`AbstractSplitScene.pack`): (d, *batch), each row one entry of the state,
 contiguous over the batch: the layout XLA vectorises. A rotation's sine and
 cosine are computed once (`groups.computed_once`) and read by every row it
-turns; XLA fuses the rest of a step into few loops.
+turns; XLA fuses the rest of a step into few loops. In low precision a
+rotation turns its rows by three shears (`PlanarTurn`), whose rounding does
+not scale them.
 """
 
 import abc
 import functools
 from collections.abc import Callable
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
@@ -37,11 +39,56 @@ from jaxtyping import Array, Float, PyTree
 from ._bundles import BundleElement
 from ._fields import AbstractFieldOnBundle
 from .coordinates import AbstractCoordinates
-from .groups._util import drifted
+from .groups._util import drifted, is_low_precision
+from .groups.trig import computed_once
 
 Packed = Float[Array, "d *batch"]
 """A state packed with its components first: one row per entry (for T*SO(3):
 Q row-major, then Π), any batch axes after."""
+
+
+class PlanarTurn(NamedTuple):
+    """A planar rotation by θ written as F·S(t)·K(s)·S(t): S(t) adds t times
+    the second row of a pair to the first, K(s) subtracts s times the first
+    from the second, F = ±1, t = tan(φ/2) and s = sin φ for the angle
+    φ = θ (F = 1) or θ − π (F = −1) with |φ| ≤ π/2, so |t| ≤ 1 (`turn_of`).
+
+    Each shear has determinant 1 whatever t and s are rounded to, so a
+    rounded turn repeated at the same angle (a steady spin) keeps the
+    rows on an ellipse near the circle. The matrix [[c, s], [−s, c]] with
+    rounded sine and cosine scales the rows by √(c² + s²) ≠ 1 instead, much
+    the same factor at every step of a slow or steady motion: in float32 the
+    norms drift in proportion to the number of steps. The flows turn by
+    shears in low precision only (`AxisRotation.moved`); in float64 that
+    drift is far below a run's other errors and the matrix, which XLA
+    fuses with less work, stays."""
+
+    half_tangent: Array
+    sine: Array
+    sign: Array
+
+
+def turn_of(sine: Array, cosine: Array) -> PlanarTurn:
+    """The `PlanarTurn` of the rotation with this sine and cosine: for
+    cos θ ≥ 0, tan(θ/2) = sin θ/(1 + cos θ); otherwise the turn by θ − π,
+    tan = −sin θ/(1 − cos θ), and F = −1. The denominator is 1 + |cos θ|
+    either way, at least 1."""
+    sign = jnp.where(cosine >= 0, 1.0, -1.0).astype(jnp.result_type(sine))
+    # Computed once: every row the turn moves reads all three.
+    return computed_once(PlanarTurn(sign * sine / (1 + jnp.abs(cosine)), sign * sine, sign))
+
+
+def turned_rows(z: Packed, pairs: tuple[tuple[int, int], ...], turn: PlanarTurn) -> Packed:
+    """z with each pair of rows (j, k) turned in its plane, (z_j, z_k) ↦
+    (c z_j + s z_k, c z_k − s z_j), by the shears of `turn`; the whole array
+    rebuilt."""
+    t, s, sign = turn
+    rows = list(z)
+    for j, k in pairs:
+        a = rows[j] + t * rows[k]
+        b = rows[k] - s * a
+        rows[j], rows[k] = sign * (a + t * b), sign * b
+    return jnp.stack(rows)
 
 
 def rotated_rows(z: Packed, pairs: tuple[tuple[int, int], ...], sine: Array, cosine: Array) -> Packed:
@@ -152,6 +199,10 @@ class AxisRotation(AbstractExactFlow):
 
     def moved(self, z, coefficients):
         sine, cosine = coefficients
+        if is_low_precision(z.dtype):
+            # Rounded, the matrix scales the rows by √(c² + s²) ≠ 1, much the
+            # same factor step after step (`PlanarTurn`); the shears do not.
+            return turned_rows(z, self.pairs, turn_of(sine, cosine))
         return rotated_rows(z, self.pairs, sine, cosine)
 
     def moved_back(self, z, coefficients):

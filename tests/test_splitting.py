@@ -11,7 +11,7 @@ import pytest
 
 import prkmk_jax as pk
 from helpers import FORCED_ARGS, TOP_ARGS, bjorck_step, max_leaf_difference
-from prkmk_jax.exact_flows import rotated_array, rotated_rows
+from prkmk_jax.exact_flows import rotated_array, rotated_rows, turn_of, turned_rows
 from prkmk_jax.groups import sincos
 from prkmk_jax.scenes import (
     ForcedRigidBody,
@@ -108,6 +108,23 @@ def test_an_axis_rotation_is_the_bundle_group_action(coordinates):
         u = h * y0.fiber[axis] / INERTIA[axis] * jnp.eye(3)[axis]
         expected = FREE.bundle.apply(coordinates, (u, None), y0, "body")
         assert max_leaf_difference(moved, expected) < 1e-15
+
+
+@pytest.mark.parametrize("angle", [0.3, -1.2, 2.5, -3.1, 40.0])
+def test_a_turn_by_shears_is_the_rotation(angle):
+    """The three shears and the sign of a turn (`turn_of`, `turned_rows`)
+    against the rotation matrix [[c, s], [−s, c]] on the free body's row
+    pairs, at angles on both sides of ±π/2 (where the sign flips) and past
+    2π; the rows a turn does not move stay as they are."""
+    rng = np.random.default_rng(3)
+    z = jnp.asarray(rng.normal(size=(12, 5)))
+    sine, cosine = jnp.sin(jnp.full(5, angle)), jnp.cos(jnp.full(5, angle))
+    for rotation in FREE.exact_flows(INERTIA):
+        turned = np.asarray(turned_rows(z, rotation.pairs, turn_of(sine, cosine)))
+        expected = np.asarray(rotated_rows(z, rotation.pairs, sine, cosine))
+        np.testing.assert_allclose(turned, expected, rtol=0, atol=8 * np.finfo(float).eps * float(jnp.max(jnp.abs(z))))
+        unmoved = [r for r in range(12) if r not in {i for pair in rotation.pairs for i in pair}]
+        assert np.array_equal(turned[unmoved], np.asarray(z)[unmoved])
 
 
 @pytest.mark.parametrize("name", ["free body", "heavy top", "forced body", "symmetric body"])

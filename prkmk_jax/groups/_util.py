@@ -72,6 +72,20 @@ def bjorck_step(matrix: Array) -> Array:
     return 1.5 * matrix - 0.5 * (matrix @ gram)
 
 
+LOW_PRECISION_EPS = 1e-10
+"""States of a dtype whose machine epsilon is above this (float32, bfloat16,
+float16) are renormalised after each step where they have drifted off the
+group by more than a few ulps (`AbstractMethod.advance`), and a splitting
+turns their rows by shears (`exact_flows.PlanarTurn`). In float64 the drift
+stays below 1e-7 over 10⁹ steps and the state is left exactly as the
+coordinate map gives it."""
+
+
+def is_low_precision(dtype) -> bool:
+    """Whether `dtype`'s machine epsilon is above `LOW_PRECISION_EPS`."""
+    return float(jnp.finfo(dtype).eps) > LOW_PRECISION_EPS
+
+
 RENORMALIZATION_DEFECT = 4.0
 """A rotation is renormalised (`AbstractRotationGroup.renormalized`) once its
 max|QᵀQ − I| exceeds this many machine epsilons of its dtype."""

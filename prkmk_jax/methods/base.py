@@ -24,15 +24,10 @@ from .._bundles import AbstractBundle, AlgebraPair, BundleElement, Increment
 from .._exact_sums import two_sum
 from .._fields import AbstractFieldOnBundle, Iterations, Time, VectorField
 from ..coordinates import AbstractCoordinates
+from ..groups._util import is_low_precision
 from ..groups.trig import computed_once
 
 RESULTS = diffrax.RESULTS
-LOW_PRECISION_EPS = 1e-10
-"""States of a dtype whose machine epsilon is above this (float32, bfloat16,
-float16) are renormalised after each step where they have drifted off the
-group by more than a few ulps (`AbstractMethod.advance`). In
-float64 the drift stays below 1e-7 over 10⁹ steps and the state is left
-exactly as the coordinate map gives it."""
 
 
 def batched_like(tree: PyTree, reference: PyTree) -> PyTree:
@@ -339,7 +334,7 @@ class AbstractMethod(eqx.Module):
         product is systematic for steady motions and would pull the state off
         the group a little every step. The correction has no exact sum to
         compensate: the rounding is None."""
-        if jnp.finfo(jnp.result_type(*jax.tree.leaves(y))).eps > LOW_PRECISION_EPS:
+        if is_low_precision(jnp.result_type(*jax.tree.leaves(y))):
             return self.bundle.renormalized(self.apply_increment(U, y)), None
         if not compensate:
             return self.apply_increment(U, y), None

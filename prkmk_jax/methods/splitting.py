@@ -38,8 +38,9 @@ from .._fields import Time, VectorField
 from ..compositions import CompositionCoefficients
 from ..coordinates import AbstractCoordinates, Exp
 from ..exact_flows import AbstractSplitScene, renormalized_rotations
+from ..groups._util import LOW_PRECISION_EPS, is_low_precision
 from ..groups.trig import computed_once
-from .base import LOW_PRECISION_EPS, RESULTS, AbstractMethod, Step, check_parts, differentiated_as, flag_nonfinite, fractions_and_starts
+from .base import RESULTS, AbstractMethod, Step, check_parts, differentiated_as, flag_nonfinite, fractions_and_starts
 
 
 def sub_steps(num_parts: int, fractions: tuple[float, ...], merge: bool) -> tuple[tuple[int, float, float], ...]:
@@ -172,7 +173,7 @@ class Splitting(AbstractMethod):
             if self.coefficients is None
             else differentiated_as(unrolled, lambda: self._strang_steps_in_loop(flows, t, dt, z, args))
         )
-        if jnp.finfo(dtype).eps > LOW_PRECISION_EPS:
+        if is_low_precision(dtype):
             # As `AbstractMethod.advance`: the rounding of each rotation is
             # systematic for steady motions and would pull the state off the group.
             z = renormalized_rotations(z, self.scene.rotation_rows)
@@ -187,7 +188,7 @@ class Splitting(AbstractMethod):
         step's end, each sub-flow once. In low precision None: the step's
         renormalisation onto the group has no inverse, and the backward pass
         undoes the step by its step of −dt and differentiates it."""
-        if jnp.finfo(jnp.result_type(*jax.tree.leaves(y_next))).eps > LOW_PRECISION_EPS:
+        if is_low_precision(jnp.result_type(*jax.tree.leaves(y_next))):
             return None
         return self.reverse_step(t, y_next, dt, args, cotangent)
 
@@ -226,7 +227,7 @@ class Splitting(AbstractMethod):
         and this raises `ValueError` (undo by `step` of −dt and differentiate
         `step` instead)."""
         dtype = jnp.result_type(*jax.tree.leaves(y_next))
-        if jnp.finfo(dtype).eps > LOW_PRECISION_EPS:
+        if is_low_precision(dtype):
             raise ValueError(f"reverse_step needs a dtype with machine epsilon at most {LOW_PRECISION_EPS:g}, got {dtype}.")
         t, dt = jnp.asarray(t, dtype), jnp.asarray(dt, dtype)
         plan = self._sub_steps(len(self.scene.exact_flows(args)))
