@@ -258,9 +258,15 @@ class SO3(AbstractRotationGroup):
 
     @classmethod
     def exp_adjoint(cls, u: Vector3, x: Vector3) -> Vector3:
-        """exp(û) x = x + (sin θ/θ) u×x + ((1 − cos θ)/θ²) u×(u×x) (Rodrigues)."""
+        """exp(û) x = x + (sin θ/θ) u×x + ((1 − cos θ)/θ²) u×(u×x) (Rodrigues).
+
+        The change is summed before it is added to x: added one term at a
+        time, x is rounded twice at its own scale, and for a slow turn the
+        second term, a few ulps of x, is rounded much the same way step
+        after step (in float32 a momentum's norm then drifted in proportion
+        to the steps)."""
         first, second = _rodrigues_terms(u, x)
-        return x + first + second
+        return x + (first + second)
 
     @classmethod
     def exp_adjoint_change(cls, u: Vector3, x: Vector3) -> Vector3:
