@@ -265,8 +265,7 @@ class SO3(AbstractRotationGroup):
         second term, a few ulps of x, is rounded much the same way step
         after step (in float32 a momentum's norm then drifted in proportion
         to the steps)."""
-        first, second = _rodrigues_terms(u, x)
-        return x + (first + second)
+        return x + cls.exp_adjoint_change(u, x)
 
     @classmethod
     def exp_adjoint_change(cls, u: Vector3, x: Vector3) -> Vector3:
