@@ -30,6 +30,7 @@ excluded). Writes accuracy.json and accuracy.png to --out.
     python benchmarks/accuracy.py
     python benchmarks/accuracy.py --quick
     python benchmarks/accuracy.py --short --regimes 1024,16384 --name accuracy_gpu   # on a GPU
+    python benchmarks/accuracy.py --growth --float32 --regimes 64 --name accuracy_float32_growth
 """
 
 import concurrent.futures
@@ -126,6 +127,11 @@ def _runners(scene_name, n, floor_fractions=pk.kahan_li_8.fractions, dtype=jnp.f
     out["PRKMK Lobatto 6"] = library(scene.method(pk.lobatto_iiia_iiib6, iterate_until="tolerance"))
     out["PRKMK Lobatto 6 Cayley"] = library(scene.method(pk.lobatto_iiia_iiib6, pk.Cayley(), iterate_until="tolerance"))
     out["PRKMK DP8 Cayley"] = library(scene.method(pk.dormand_prince_8, pk.Cayley()))
+    # The families of the growth sweep (`GROWTH_SWEEPS`) that the sweeps above leave out.
+    out["PRKMK DP8"] = library(scene.method(pk.dormand_prince_8))
+    out["PRKMK SV"] = library(scene.method(pk.stormer_verlet))
+    out["PRKMK SV Cayley"] = library(scene.method(pk.stormer_verlet, pk.Cayley()))
+    out["PRKMK Symmetrized SV∘Kahan–Li 6"] = library(pk.Composition(pk.Symmetrized(scene.method(pk.stormer_verlet)), pk.kahan_li_6))
     if scene_name == "heavy top":  # on G×g the fiber's part of each stage is a sum (Cayley's dcay⁻¹ is I there)
         on_g_x_g = HeavyTop(pk.DirectProduct(pk.SO3))
         out["PRKMK DP8 Cayley G×g"] = library(on_g_x_g.method(pk.dormand_prince_8, pk.Cayley()), on_g_x_g)
@@ -137,15 +143,18 @@ def _runners(scene_name, n, floor_fractions=pk.kahan_li_8.fractions, dtype=jnp.f
 
 def _on_embedding(scene, args, solver, dt0, controller, max_steps, result):
     """(q, p) ↦ `result(sol)` of diffrax's solve from 0 to T on the embedding
-    ℝ⁹×ℝ³, vmapped over a batch of initial states."""
+    ℝ⁹×ℝ³, vmapped over a batch of initial states. The times in the state's
+    dtype: diffrax promotes the state to the times' dtype, so float64 times
+    would run a float32 solve in float64."""
+    dtype = jnp.result_type(*jax.tree.leaves(args))
 
     def one(q, p):
         sol = diffrax.diffeqsolve(
             diffrax.ODETerm(scene.embedding_field),
             solver,
-            0.0,
-            T_END,
-            dt0,
+            jnp.asarray(0.0, dtype),
+            jnp.asarray(T_END, dtype),
+            None if dt0 is None else jnp.asarray(dt0, dtype),
             jnp.concatenate([q.reshape(9), p]),
             args,
             saveat=diffrax.SaveAt(t1=True),
@@ -185,6 +194,12 @@ SWEEPS = {
     "Tsit5 PID": [1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12],
 }
 
+GROWTH_METHODS = ("splitting Strang", "splitting order 8", "PRKMK SV", "PRKMK SV Cayley", "PRKMK Lobatto 6 Cayley", "PRKMK DP8")
+GROWTH_METHODS += ("PRKMK DP8 Cayley", "PRKMK Symmetrized SV∘Kahan–Li 6", "Dopri8 fixed")
+GROWTH_SWEEPS = {method: [40 * 2**k for k in range(8)] for method in GROWTH_METHODS}
+"""--growth: a family from each of the library's kinds and diffrax's Dopri8,
+the step count doubled from 40 to 5120: where rounding takes over from
+truncation (the floor), and how the error grows past it."""
 
 # --quick runs one method of each kind (the code each kind runs is the same).
 QUICK_SKIPS = ("splitting order 4", "splitting order 6", "splitting order 8", "PRKMK Lobatto 6", "Tsit5 fixed", "Tsit5 PID")
@@ -238,7 +253,7 @@ def _compiled(lowered, parallel):
         return {key: (future.result(), None) for key, future in futures.items()}
 
 
-def run(regime, scene_name, quick, rounds, short=False, dtype=jnp.float64, parallel_compile=False, without=(), only=()):
+def run(regime, scene_name, quick, rounds, short=False, dtype=jnp.float64, parallel_compile=False, without=(), only=(), growth=False):
     targets = TARGETS if dtype == jnp.float64 else TARGETS_FLOAT32
     batch = None if regime == "single" else int(regime)
     q0, p0 = C.initial_conditions(batch, seed=1)
@@ -251,6 +266,7 @@ def run(regime, scene_name, quick, rounds, short=False, dtype=jnp.float64, paral
     rows = []
     chosen = {}
     sweeps = SWEEPS if not short else SHORT_SWEEPS if dtype == jnp.float64 else SHORT_SWEEPS_FLOAT32
+    sweeps = GROWTH_SWEEPS if growth else sweeps
     # --quick: every code path once; the floor composes Suzuki's 5 steps (quicker to compile).
     fractions = pk.suzuki_5.fractions if quick else pk.kahan_li_8.fractions
 
@@ -342,8 +358,9 @@ def plot(rows, path, targets):
     plt.close(fig)
 
 
-RESULTS_FILES = ("accuracy", "accuracy_16384", "accuracy_gpu_float64", "accuracy_gpu_float32")
-"""The committed runs, in the order the tables list them (`--name` of each)."""
+RESULTS_FILES = ("accuracy", "accuracy_16384", "accuracy_gpu_float64")
+"""The committed runs, in the order the tables list them (`--name` of each);
+not `accuracy_gpu_float32`, whose diffrax runs ran in float64 (README)."""
 FLOOR = "floor order 8 (hand-written)"
 FAMILIES = (("splittings", "splitting"), ("PRKMK", "PRKMK"))
 """The library's families: name, and the prefix of their methods in the results."""
@@ -473,6 +490,25 @@ def summary_table(entries: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def growth_table(data: dict) -> str:
+    """`--growth`'s results: for each scene, batch, dtype and method, the
+    floor (the smallest error of the sweep), the error at the most steps,
+    and the growth exponent from the floor on (the least-squares slope of
+    log error against log steps, from 3 points: 0.5 for a random walk of
+    roundings, 1 for a rounding that leans one way)."""
+    rows = []
+    for key in dict.fromkeys((r["scene"], r["regime"], r["dtype"], r["method"]) for r in data["rows"]):
+        runs = sorted((r for r in data["rows"] if (r["scene"], r["regime"], r["dtype"], r["method"]) == key), key=lambda r: r["steps"])
+        steps, errors = np.log([r["steps"] for r in runs]), np.log([r["error"] for r in runs])
+        k = int(np.argmin(errors))
+        slope = f"{np.polyfit(steps[k:], errors[k:], 1)[0]:.2f}" if len(runs) - k >= 3 else "–"
+        cells = [f"{np.exp(errors[i]):.1e} (n = {runs[i]['steps']})" for i in (k, -1)]
+        rows.append([key[0], _batch(key[1]), key[2], key[3], *cells, slope])
+    headers = ["scene", "batch", "dtype", "method", "floor (steps)", "error at the most steps", "growth exponent past the floor"]
+    caption = f" T = {data['t_end']:g}; the largest error over the entries and 32 trajectories.\n\n"
+    return C.measured_on(data) + caption + C.table(headers, rows)
+
+
 def tables(results: Path) -> dict[str, str]:
     """This script's tables, made from its results in `results` (`write_tables.py`):
     `accuracy`, for each scene, batch, device, dtype and error target, the
@@ -483,13 +519,15 @@ def tables(results: Path) -> dict[str, str]:
     `summary`, one row per scene, batch, device and dtype, the library's
     time over diffrax's at each target."""
     entries = load(results)
-    return {"accuracy": accuracy_table(entries), "decision": decision_table(entries), "summary": summary_table(entries)}
+    out = {"accuracy": accuracy_table(entries), "decision": decision_table(entries), "summary": summary_table(entries)}
+    return out | {"float32_growth": growth_table(C.results_file(results, "accuracy_float32_growth.json"))}
 
 
 def _arguments(parser):
     parser.add_argument("--regimes", default="single,1024", help="comma-separated: single, or a batch size")
     parser.add_argument("--short", action="store_true", help="the order-8 splittings and Dopri8 only, near the targets (device runs)")
     parser.add_argument("--float32", action="store_true", help="states and parameters in float32")
+    parser.add_argument("--growth", action="store_true", help="sweep GROWTH_SWEEPS (errors against step count) instead")
     parser.add_argument("--name", default="accuracy", help="stem of the results files")
     parser.add_argument("--without", default="", help="comma-separated methods to leave out (e.g. 'Tsit5 fixed')")
     parser.add_argument("--methods", default="", help="comma-separated methods to run (default: all of the sweep)")
@@ -520,10 +558,12 @@ def main(argv=None):
                 parallel_compile=args.parallel_compile,
                 without=args.without.split(","),
                 only=[m for m in args.methods.split(",") if m],
+                growth=args.growth,
             )
             write()  # what a run cut short has measured so far
     plot(rows, out / f"{args.name}.png", targets)
-    print(accuracy_table(entries_of(dict(machine=C.machine(), targets=targets, rows=rows), args.name)))
+    data = dict(machine=C.machine(), t_end=T_END, targets=targets, rows=rows)
+    print(growth_table(data) if args.growth else accuracy_table(entries_of(data, args.name)))
 
 
 if __name__ == "__main__":

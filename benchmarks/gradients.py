@@ -1,43 +1,19 @@
 """Gradient memory and time against the number of steps, up to a fit's
 gradient over more steps than stored steps could hold.
 
-The free body on T*SO(3) (body form, h = 0.01, the paper's inertia, a batch
-of random attitudes). The loss is a weighted sum of the final momenta and
-attitudes; its gradient is taken with respect to the inertia, by
-`jax.value_and_grad` of
-
-- `integrate` with Störmer–Verlet, through the stored steps (`StoredSteps()`)
-  and with `ReversibleGradient(checkpoint_every=None)` (the states rebuilt
-  backwards from the last one, the only state kept; the SV step undone by
-  its adjoint);
-- `integrate` with the Strang `Splitting`, through the stored steps and with
-  `ReversibleGradient(checkpoint_every=None)` (undone and differentiated
-  sub-flow by sub-flow, `Splitting.reverse_step`);
-- `diffeqsolve(PRKMKSolver(SV))` with diffrax's `RecursiveCheckpointAdjoint`
-  and with `ReversibleAdjoint` (rebuilt from the last state, as above).
-
-At 10⁶ steps the stored splitting and `ReversibleAdjoint` are left out (the
-rows below show how they scale), to keep the run short. The same paths
-(but the stored splitting) also run at batch 1024 over 10³ steps, where
-the steps' arithmetic rather than the number of kernels each step
-launches sets the time.
-
-The batch is vmapped, as a user maps a single-trajectory loss. Each case
-runs in a process of its own, which reports
-
-- the compiled gradient's temporary memory (XLA's memory analysis);
-- the process's peak resident memory (the operating system's maximum RSS)
-  after compiling both programs, after the forward run and after the
-  gradient: what a run adds shows only where it exceeds the compiler's
-  peak;
-- compile times, and the forward and gradient times, interleaved over the
-  rounds (one round at the largest number of steps: the first run after an
-  ahead-of-time compile).
-
-Last, the scale of a fit: `value_and_grad` of a batch of 1024 trajectories
-(the batch in the state, one run of all of them) over 10⁶ steps with the
-splitting and `ReversibleGradient()` (a state kept every 1000 steps). Its
-stored steps would need 1024 × 10⁶ × 96 bytes ≈ 98 GB.
+`jax.value_and_grad` with respect to the inertia of a weighted sum of the
+final momenta and attitudes of the free body on T*SO(3) (body form,
+h = 0.01, a vmapped batch of random attitudes), along each of `PATHS`:
+`integrate` through the stored steps and with
+`ReversibleGradient(checkpoint_every=None)`, for Störmer–Verlet and the
+Strang splitting, and `diffeqsolve(PRKMKSolver(SV))` with diffrax's
+`RecursiveCheckpointAdjoint` and with `ReversibleAdjoint`; at batch 64 over
+10³ … 10⁶ steps and at batch 1024 over 10³, then the fit's scale (`FIT`:
+1024 trajectories in the state over 10⁶ steps). Each case runs in a
+process of its own and reports XLA's temporary memory of the gradient, the
+process's peak resident memory after compiling, after the forward run and
+after the gradient, the compile times, and the forward and gradient times
+interleaved over the rounds. `benchmarks/README.md` says more.
 
     python benchmarks/gradients.py
     python benchmarks/gradients.py --quick   # tiny sizes, three of the cases, one process after the first

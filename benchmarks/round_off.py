@@ -3,40 +3,20 @@ number of steps, and what solving the implicit stages to round-off costs
 (`PRKMK(iterate_until="round-off")`, the default, against
 `iterate_until="tolerance"`, which stops at the default tolerance 1e-12).
 
-Growth: for each method and setting, a batch of `--batch` random initial
-states (Haar-random attitudes, unit |Π| in a random direction), h = 0.1
-(the heavy top 0.05), run for up to `--max-steps` steps (vmapped, each
-trajectory its own stage iterations). For each invariant, the largest
-error up to step N (relative for the energy and the Casimirs, the largest
-entry of QᵀQ − I for the attitude) is taken per trajectory, its median over
-the batch is recorded at N = 10³ … and the growth exponent is the
-least-squares slope of log(median) against log N over N ≥ 10⁴. A random
-walk of roundings gives 0.5, a bias (a stage tolerance, a systematic
-rounding) 1. Each exponent comes with the central 90% of its bootstrap
-distribution (the batch drawn again from its trajectories): with few
-trajectories the median, and so the fit, moves by several hundredths
-with the initial states drawn.
+Growth: for each method and setting (`methods`, `SPLITTINGS`), a batch of
+`--batch` random initial states (`initial_states`), h = 0.1 (the heavy top
+0.05), run for up to `--max-steps` steps. For each invariant the largest
+error up to step N is taken per trajectory (`invariant_errors`), its median
+over the batch recorded, and the growth exponent fitted over N ≥ 10⁴
+(`exponent`; 0.5 for a random walk of roundings, 1 for a bias) with the
+central 90% of its bootstrap distribution (`exponent_interval`). Against
+diffrax's Dopri8 on the embedding at the constant step where it costs what
+SV costs per unit of simulated time (`dopri8_at_equal_cost`).
 
-* Free body (T*SO(3), exp and Cayley, body form): Störmer–Verlet keeps the
-  energy and |Π| exactly in exact arithmetic, so their errors are rounding
-  alone; also SV∘Kahan–Li 6 and Symmetrized Lobatto IIIA–IIIB 4.
-* Heavy top (T*SO(3), inertia (1, 0.8, 0.4), lever (0.1, 0.2, 0.9)):
-  Symmetrized SV; its energy and vertical momentum errors are the
-  method's (truncation, not rounding); QᵀQ is rounding.
-* The exact-flow splittings (explicit, stages "explicit"): Strang and
-  Kahan–Li 8 on the free body, Strang on the heavy top. Each sub-flow is a
-  rotation or a kick that keeps |Π| (the free body), the vertical momentum
-  (the top) and the group in exact arithmetic; their energy errors are
-  truncation.
-* Against diffrax's Dopri8 at equal cost: Dopri8 on the embedding ℝ⁹×ℝ³
-  with the constant step at which it costs what SV does per unit of
-  simulated time (both timed here, vmapped over the same batch), over
-  the same horizon; `round_off.png` charts the energy errors against
-  time.
-
-Cost: the same methods, one trajectory and a batch of 64 in the state,
+Cost: the implicit methods, one trajectory and a batch of 64 in the state,
 both settings compiled and run interleaved: ns per trajectory-step,
-implicit iterations a step, and their ratios.
+implicit iterations a step, and their ratios. `benchmarks/README.md` says
+more.
 
     python benchmarks/round_off.py
     python benchmarks/round_off.py --quick
