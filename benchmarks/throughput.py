@@ -11,7 +11,8 @@
 2. Compile time (lower + compile of a fresh jit) against the number of
    stages: symplectic Euler (1), Störmer–Verlet (2), Lobatto IIIA–IIIB (3).
 3. The explicit stages unrolled or in a loop (`PRKMK(explicit_stages=...)`):
-   classical RK 4 and Dormand–Prince 8 (RKMK) on T*SO(3) and on G×g, one
+   classical RK 4 and Dormand–Prince 8 (RKMK; exp, and Cayley coordinates
+   for DP 8) on T*SO(3) and on G×g, one
    trajectory and batches of 8, 16 and 1024 in the state, the two layouts
    in alternation; time a step, loop over unrolled, and compile times: the
    rows that check the default ("auto": the loop from `STAGE_LOOP_BATCH`
@@ -133,7 +134,8 @@ def _side_by_side(finals, args, steps, rounds):
 def stage_layouts(quick, rounds):
     rows = []
     bundles = {"T*SO(3)": pk.Cotangent(pk.SO3), "G×g": pk.DirectProduct(pk.SO3)}
-    tableaus = {"RK 4": pk.classical_rk4, "DP 8": pk.dormand_prince_8}
+    tableaus = {"RK 4": (pk.classical_rk4, pk.Exp()), "DP 8": (pk.dormand_prince_8, pk.Exp())}
+    tableaus["DP 8, Cayley"] = (pk.dormand_prince_8, pk.Cayley())
     if quick:  # one of each layout: the script runs
         bundles, tableaus = {"T*SO(3)": bundles["T*SO(3)"]}, {"DP 8": tableaus["DP 8"]}
     for batch in [8] if quick else [1, 8, 16, 1024]:
@@ -142,9 +144,10 @@ def stage_layouts(quick, rounds):
         args = (jnp.asarray(qs), jnp.asarray(pis), jnp.asarray(C.INERTIA))
         for bundle_name, bundle in bundles.items():
             scene = FreeRigidBody(bundle)
-            for tableau_name, tableau in tableaus.items():
+            for tableau_name, (tableau, coordinates) in tableaus.items():
                 finals = {
-                    k: C.integrate_final(scene.method(tableau, explicit_stages=k), steps, H, scene=scene) for k in ("loop", "unrolled")
+                    k: C.integrate_final(scene.method(tableau, coordinates, explicit_stages=k), steps, H, scene=scene)
+                    for k in ("loop", "unrolled")
                 }
                 step_us, ratio, compile_s = _side_by_side(finals, args, steps, rounds)
                 row = dict(bundle=bundle_name, tableau=tableau_name, batch=batch, step_us=step_us)

@@ -49,6 +49,19 @@ def _dot(u, v):
     return jnp.sum(u * v, axis=-1)
 
 
+def _dot_fused(u, v):
+    """u·v as `_dot`, written as the sum of its three products, which XLA
+    fuses with the arithmetic around it, where `_dot`'s reduction over the
+    length-3 axis is a kernel of its own on the CPU. dcay⁻¹ uses it: it is
+    evaluated at every stage, and with the reduction a batched RKMK step
+    with Cayley coordinates ran at a fraction of its speed on T*SO(3)
+    (`benchmarks/throughput.py`, the stage layouts). Elsewhere the reduction stays: written out, θ²
+    and what is computed from it (the exponential's sines, the Cayley
+    factor) are evaluated again in every kernel that reads them, and the
+    steps measured slower."""
+    return u[..., 0] * v[..., 0] + u[..., 1] * v[..., 1] + u[..., 2] * v[..., 2]
+
+
 def _cross_twice(u, v):
     """û² v = u × (u × v) = (u·v) u − θ² v."""
     return _dot(u, v)[..., None] * u - _theta_sq(u)[..., None] * v
@@ -310,7 +323,7 @@ class SO3(AbstractRotationGroup):
     @classmethod
     def dcayley_inv(cls, u: Vector3, v: Vector3) -> Vector3:
         """dcay_u⁻¹ v = v − ½ u×v + ¼ (u·v) u  (since ûv̂û = −(u·v)û)."""
-        return v - 0.5 * jnp.cross(u, v) + 0.25 * _dot(u, v)[..., None] * u
+        return v - 0.5 * jnp.cross(u, v) + 0.25 * _dot_fused(u, v)[..., None] * u
 
     @classmethod
     def cayley_adjoint(cls, u: Vector3, x: Vector3) -> Vector3:
