@@ -163,14 +163,9 @@ class PRKMK(AbstractMethod):
         return Adjoint(self)  # pyright: ignore[reportCallIssue]  # equinox: AbstractVars implemented by properties are not __init__ fields
 
     def for_reconstruction(self) -> "PRKMK":
-        """The product as it is, the iteration from the guess, and stages
-        solved to the tolerance: a state rebuilt from a kept one over a
-        stretch of steps, and the derivative taken there, need the step to
-        the stage solve's tolerance, not a long run's refinements that keep
-        its rounding from leaning one way (the iterations past the tolerance
-        and the once-rounded sum of the stages)."""
-        until = "tolerance" if self.root_finder is None else self.iterate_until
-        return dataclasses.replace(self, compensated_sum=False, start_either_side=False, iterate_until=until)
+        """The product as it is and the iteration from the guess: a state
+        rebuilt from a kept one needs round-off, not a long run's refinements."""
+        return dataclasses.replace(self, compensated_sum=False, start_either_side=False)
 
     def step_again(self, vector_field, t, y, dt, args, undone_carried) -> Step:
         """Its adjoint's step at −h solved the same stage equations: their
