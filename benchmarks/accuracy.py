@@ -502,7 +502,7 @@ def growth_table(data: dict) -> str:
         steps, errors = np.log([r["steps"] for r in runs]), np.log([r["error"] for r in runs])
         k = int(np.argmin(errors))
         slope = f"{np.polyfit(steps[k:], errors[k:], 1)[0]:.2f}" if len(runs) - k >= 3 else "–"
-        cells = [f"{np.exp(errors[i]):.1e} (n = {runs[i]['steps']})" for i in (k, -1)]
+        cells = [f"{runs[i]['error']:.1e} (n = {runs[i]['steps']})" for i in (k, -1)]
         rows.append([key[0], _batch(key[1]), key[2], key[3], *cells, slope])
     headers = ["scene", "batch", "dtype", "method", "floor (steps)", "error at the most steps", "growth exponent past the floor"]
     caption = f" T = {data['t_end']:g}; the largest error over the entries and 32 trajectories.\n\n"

@@ -54,11 +54,12 @@ def _dot_fused(u, v):
     fuses with the arithmetic around it, where `_dot`'s reduction over the
     length-3 axis is a kernel of its own on the CPU. dcay⁻¹ uses it: it is
     evaluated at every stage, and with the reduction a batched RKMK step
-    with Cayley coordinates ran at a fraction of its speed on T*SO(3)
-    (`benchmarks/throughput.py`, the stage layouts). Elsewhere the reduction stays: written out, θ²
-    and what is computed from it (the exponential's sines, the Cayley
-    factor) are evaluated again in every kernel that reads them, and the
-    steps measured slower."""
+    with Cayley coordinates on T*SO(3) ran at a fraction of this speed
+    (measured against it; the step's time: `benchmarks/throughput.py`, the
+    stage layouts). Elsewhere the reduction stays: written out, θ² and what
+    is computed from it (the exponential's sines, the Cayley factor) are
+    evaluated again in every kernel that reads them, and the steps
+    measured slower."""
     return u[..., 0] * v[..., 0] + u[..., 1] * v[..., 1] + u[..., 2] * v[..., 2]
 
 
