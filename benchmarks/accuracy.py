@@ -10,7 +10,7 @@ T = 10. Methods:
   6 and 8), through `prkmk_jax.integrate`, the batch in the state;
 - the floor of that family: the order-8 (Kahan–Li s17) splitting written by
   hand on the packed (12, batch) array, the axes in the library's order,
-  the outer rotations merged, with the same vectorised sine and cosine
+  the outer rotations merged, with the same sine and cosine
   (`prkmk_jax.groups.sincos`) and no other library code;
 - PRKMK: Lobatto IIIA–IIIB 6 with exp and with Cayley coordinates
   (symplectic, implicit; stages stopped at the tolerance,

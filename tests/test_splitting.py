@@ -56,6 +56,14 @@ def test_sincos_against_numpy_and_its_derivative(dtype):
     np.testing.assert_allclose(np.asarray(cosine, np.float64), np.cos(exact), rtol=0, atol=4 * eps)
     derivative = jax.vmap(jax.grad(lambda a: 2 * sincos(a)[0] + sincos(a)[1]))(jnp.asarray(angles[:50]))
     np.testing.assert_allclose(derivative, 2 * np.cos(angles[:50]) - np.sin(angles[:50]), rtol=0, atol=8 * eps)
+    # One angle at a time (the library call), and many under vmap (the
+    # polynomials): the same values to the same accuracy.
+    one = jax.jit(sincos)
+    for angle in angles[::400]:
+        value = np.asarray(one(jnp.asarray(angle)), np.float64)
+        np.testing.assert_allclose(value, (np.sin(float(angle)), np.cos(float(angle))), rtol=0, atol=4 * eps)
+    vmapped = np.asarray(jax.vmap(sincos)(jnp.asarray(angles)), np.float64)
+    np.testing.assert_allclose(vmapped, (np.sin(exact), np.cos(exact)), rtol=0, atol=4 * eps)
 
 
 @pytest.mark.parametrize("name", ["free body", "heavy top", "forced body", "symmetric body"])

@@ -118,7 +118,7 @@ class AbstractCoordinates(eqx.Module):
         rotations of one coordinate plane (E² = −1 on it): the exact sub-flows
         of a splitting turn through these, each read by several rows of the
         state. By default read off φ on SO(3) about the third axis; a map
-        overrides it with arithmetic XLA vectorises (`groups.sincos`). It
+        overrides it with a cheaper formula (`Exp`: `groups.sincos`). It
         is returned through `groups.computed_once`, so that the rows reading
         it do not each evaluate it again."""
         axis = jnp.zeros((3,), jnp.result_type(angle)).at[2].set(1.0)

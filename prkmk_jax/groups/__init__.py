@@ -6,5 +6,6 @@ from .so3 import hat as hat
 from .so3 import vee as vee
 from .son import SOn as SOn
 from .trig import computed_once as computed_once
+from .trig import polynomial_sincos as polynomial_sincos
 from .trig import sincos as sincos
 from .vector_space import VectorSpace as VectorSpace

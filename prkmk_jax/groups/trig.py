@@ -1,16 +1,21 @@
-"""Sine and cosine of one angle, written with arithmetic that XLA vectorises.
+"""Sine and cosine of an angle: a library call for one, arithmetic that XLA
+vectorises for many.
 
 XLA's CPU backend evaluates `jnp.sin` and `jnp.cos` of float64 element by
-element through a library call; an exact-flow splitting step is a chain of
-planar rotations whose cost is almost all sines and cosines. `sincos`
-computes both from one reduction of the angle to [−π/4, π/4] (Cody–Waite: π/2 split into
+element through a library call: the fastest way to one value, slow on a
+batch; an exact-flow splitting step is a chain of planar rotations whose
+cost is almost all sines and cosines. `polynomial_sincos` computes both
+from one reduction of the angle to [−π/4, π/4] (Cody–Waite: π/2 split into
 parts whose products with the quadrant count are exact) and Taylor
 polynomials there, with as many terms as the dtype needs; the quadrant then
 picks signs and swaps. Accurate to a few units in the last place for
 |angle| ≲ 10⁵ (float64) or 10³ (float32): a rotation per sub-step of a
-step, far beyond any angle an integrator takes. The pair comes back
+step, far beyond any angle an integrator takes. `sincos` takes the library
+call for one angle and the polynomials for many, including one angle per
+trajectory under `jax.vmap` (`jax.custom_batching.custom_vmap`), so the
+rule follows the batch whichever way it is run. The pair comes back
 computed once (`computed_once`), so the rows of a rotation that read it do
-not each evaluate the polynomials again.
+not each evaluate it again.
 """
 
 import math
@@ -62,11 +67,11 @@ def _series(r2: Array, first: int, count: int) -> Array:
     return acc
 
 
-@jax.custom_jvp
-def sincos(angle: Float[Array, "*batch"]) -> tuple[Float[Array, "*batch"], Float[Array, "*batch"]]:
-    """(sin a, cos a) for a floating array a (any shape), by vectorisable
-    arithmetic; see the module docstring for its range and accuracy.
-    Differentiable: the derivative is (cos a, −sin a)·ȧ."""
+def polynomial_sincos(angle: Float[Array, "*batch"]) -> tuple[Float[Array, "*batch"], Float[Array, "*batch"]]:
+    """(sin a, cos a) by the reduction and polynomials of the module
+    docstring, element by element in arithmetic that XLA vectorises; what
+    `sincos` computes for many angles. Not differentiable by itself: use
+    `sincos`."""
     dtype = jnp.result_type(angle)
     if not jnp.issubdtype(dtype, jnp.floating):
         raise TypeError(f"sincos needs a floating angle, got {dtype}.")
@@ -84,6 +89,38 @@ def sincos(angle: Float[Array, "*batch"]) -> tuple[Float[Array, "*batch"], Float
     sine = jnp.where(q == 0, s, jnp.where(q == 1, c, jnp.where(q == 2, -s, -c)))
     cosine = jnp.where(q == 0, c, jnp.where(q == 1, -s, jnp.where(q == 2, -c, s)))
     return computed_once(sine, cosine)
+
+
+@jax.custom_batching.custom_vmap
+def _one_or_many(angle):
+    """One angle: `jnp.sin` and `jnp.cos` (a library call, the fastest way to
+    one value); more than one: `polynomial_sincos`. Under `jax.vmap` the
+    angles are many, whatever shape one trajectory sees."""
+    if jnp.size(angle) == 1:
+        dtype = jnp.result_type(angle)
+        if not jnp.issubdtype(dtype, jnp.floating):
+            raise TypeError(f"sincos needs a floating angle, got {dtype}.")
+        return computed_once(jnp.sin(angle), jnp.cos(angle))
+    return polynomial_sincos(angle)
+
+
+@_one_or_many.def_vmap
+def _many(axis_size, in_batched, angle):
+    del axis_size
+    (batched,) = in_batched
+    out = polynomial_sincos(angle) if batched else _one_or_many(angle)
+    return out, (batched, batched)
+
+
+@jax.custom_jvp
+def sincos(angle: Float[Array, "*batch"]) -> tuple[Float[Array, "*batch"], Float[Array, "*batch"]]:
+    """(sin a, cos a) for a floating array a (any shape): of one angle by
+    `jnp.sin` and `jnp.cos`, of many (an array, or one angle per
+    trajectory under `jax.vmap`) by `polynomial_sincos`, whose arithmetic
+    XLA vectorises where its sine and cosine are a call per element; see the
+    module docstring for its range and accuracy. Differentiable: the
+    derivative is (cos a, −sin a)·ȧ."""
+    return _one_or_many(angle)
 
 
 @sincos.defjvp
