@@ -2,8 +2,6 @@
 invariants along an independent reference solution, the empirical orders of
 the methods on it, and what each method keeps over long times."""
 
-import diffrax
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -97,25 +95,6 @@ def test_cayley_stormer_verlet_keeps_the_vertical_momentum_to_round_off():
     over T = 500 (its energy drifts as with exp)."""
     first, last = _quarters(TOP.method(pk.stormer_verlet, pk.Cayley()), ASYMMETRIC)["vertical momentum"]
     assert max(first, last) < 1e-10, (first, last)
-
-
-def test_diffeqsolve_with_the_scene_as_term_and_gradient_in_the_parameters():
-    method = TOP.method(pk.stormer_verlet)
-
-    def final_momentum_projection(lever):
-        args = TopParameters(ASYMMETRIC.inertia, lever)
-        sol = diffrax.diffeqsolve(pk.PRKMKTerm(TOP), pk.PRKMKSolver(method), 0.0, 1.0, 0.05, Y0, args)
-        return jnp.sum(sol.ys.fiber[-1] * jnp.array([0.2, -0.5, 1.0]))
-
-    final_momentum_projection = jax.jit(final_momentum_projection)
-
-    lever = ASYMMETRIC.lever
-    grad = jax.grad(final_momentum_projection)(lever)
-    step = 1e-6
-    fd = np.array(
-        [(final_momentum_projection(lever + step * e) - final_momentum_projection(lever - step * e)) / (2 * step) for e in np.eye(3)]
-    )
-    np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-9)
 
 
 def test_on_the_direct_product_the_lagrange_spin_is_kept_to_round_off():
