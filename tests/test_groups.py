@@ -344,6 +344,7 @@ def test_the_defaults_agree_with_the_closed_forms(name):
     for method in ["dexp", "dexp_inv", "exp_adjoint", "exp_adjoint_change", "dcayley", "cayley_adjoint", "cayley_adjoint_change"]:
         _close(getattr(plain, method)(u, x), getattr(group, method)(u, x), tol=1e-13)
     _close(plain.inverse_shifted_ad(u, x, 0.5), group.inverse_shifted_ad(u, x, 0.5), tol=1e-13)
+    _close(plain.shifted_cayley_adjoint_inverse(u, x), group.shifted_cayley_adjoint_inverse(u, x), tol=1e-13)
     for method in ["exp_change", "cayley_change"]:
         _close(getattr(plain, method)(u), getattr(group, method)(u), tol=1e-15)
     g = group.exp(x)

@@ -101,8 +101,7 @@ class Cayley(AbstractCoordinates):
         w = self.fiber_map(group, u, v, sign)
         x_v = group.dcayley_inv(u, x)
         if left:
-            z = group.cayley_adjoint(-u, y)  # Ad_{cay(−u)} = Ad_{cay(u)⁻¹}, without forming the matrix
-            y_v = z + 0.5 * br(u, z) + 0.5 * br(x_v, w)
+            y_v = group.shifted_cayley_adjoint_inverse(u, y) + 0.5 * br(x_v, w)
         else:
             z = y + br(x, w)
             y_v = z - 0.5 * br(u, z) - 0.5 * br(x_v, w)

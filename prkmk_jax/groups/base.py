@@ -236,6 +236,15 @@ class AbstractQuadraticGroup(AbstractLieGroup):
         return cls.cayley_adjoint(u, x) - x
 
     @classmethod
+    def shifted_cayley_adjoint_inverse(cls, u: Array, x: Array) -> Array:
+        """(I + ½ ad_u) Ad_{cay(u)⁻¹} x: how the left-trivialised semidirect
+        Cayley map's inverse differential moves the fiber
+        (`Cayley.semidirect_inverse_differential`); by default its two
+        factors (cay(u)⁻¹ = cay(−u))."""
+        z = cls.cayley_adjoint(-u, x)
+        return z + 0.5 * cls.bracket(u, z)
+
+    @classmethod
     def inverse_shifted_ad(cls, u: Array, v: Array, alpha: float) -> Array:
         """(I + α ad_u)⁻¹ v, the fiber factor of the semidirect Cayley map
         (§4.4); by default a dense solve per element (`solve_in_algebra`)."""

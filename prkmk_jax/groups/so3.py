@@ -336,6 +336,13 @@ class SO3(AbstractRotationGroup):
         return x + cls.cayley_adjoint_change(u, x)
 
     @classmethod
+    def shifted_cayley_adjoint_inverse(cls, u: Vector3, x: Vector3) -> Vector3:
+        """(I + ½û) cay(−û) x = x − ½ u×x: on so(3) Ad_{cay(−u)} is the
+        matrix cay(−û) = (I + ½û)⁻¹(I − ½û), and the factors commute (one
+        cross product where the default takes three and a division)."""
+        return x - 0.5 * jnp.cross(u, x)
+
+    @classmethod
     def cayley_adjoint_change(cls, u: Vector3, x: Vector3) -> Vector3:
         """cay(û) x − x = 4/(4 + θ²) (u×x + ½ u×(u×x))."""
         k = 4.0 / (4.0 + _theta_sq(u))
