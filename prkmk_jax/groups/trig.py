@@ -67,14 +67,20 @@ def _series(r2: Array, first: int, count: int) -> Array:
     return acc
 
 
+def _floating_dtype(angle):
+    """The angle's dtype, which must be floating."""
+    dtype = jnp.result_type(angle)
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise TypeError(f"sincos needs a floating angle, got {dtype}.")
+    return dtype
+
+
 def polynomial_sincos(angle: Float[Array, "*batch"]) -> tuple[Float[Array, "*batch"], Float[Array, "*batch"]]:
     """(sin a, cos a) by the reduction and polynomials of the module
     docstring, element by element in arithmetic that XLA vectorises; what
     `sincos` computes for many angles. Not differentiable by itself: use
     `sincos`."""
-    dtype = jnp.result_type(angle)
-    if not jnp.issubdtype(dtype, jnp.floating):
-        raise TypeError(f"sincos needs a floating angle, got {dtype}.")
+    dtype = _floating_dtype(angle)
     bits = 64 if jnp.finfo(dtype).bits == 64 else 32
     quadrants = jnp.round(angle * (2 / math.pi))
     r = angle
@@ -97,9 +103,7 @@ def _one_or_many(angle):
     one value); more than one: `polynomial_sincos`. Under `jax.vmap` the
     angles are many, whatever shape one trajectory sees."""
     if jnp.size(angle) == 1:
-        dtype = jnp.result_type(angle)
-        if not jnp.issubdtype(dtype, jnp.floating):
-            raise TypeError(f"sincos needs a floating angle, got {dtype}.")
+        _floating_dtype(angle)
         return computed_once(jnp.sin(angle), jnp.cos(angle))
     return polynomial_sincos(angle)
 
