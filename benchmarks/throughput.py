@@ -160,8 +160,7 @@ def stage_layouts(quick, rounds):
 
 
 class _TurnedBy(pk.AbstractCoordinates):
-    """`Exp`, except that a splitting's planar rotations take their sine and
-    cosine from `sines` (one way, whatever the batch)."""
+    """`Exp`, a splitting's planar rotations turned by `sines` (one way, whatever the batch; computed once)."""
 
     sines: Callable = eqx.field(static=True)
     maps_lines_to_subgroups: ClassVar[bool] = True
@@ -177,13 +176,14 @@ class _TurnedBy(pk.AbstractCoordinates):
         return pk.Exp().group_inverse_differential(group, u, x)
 
     def planar_rotation(self, angle):
-        return pk.groups.computed_once(*self.sines(angle))
+        return self.sines(angle)
 
 
 def rotations(quick, rounds):
     rows = []
     splittings = {"Strang": None, "Kahan–Li 6": pk.kahan_li_6}
-    charts = {"polynomials": _TurnedBy(pk.groups.polynomial_sincos), "jnp.sin, jnp.cos": _TurnedBy(lambda a: (jnp.sin(a), jnp.cos(a)))}
+    library = _TurnedBy(lambda a: pk.groups.computed_once(jnp.sin(a), jnp.cos(a)))
+    charts = {"polynomials": _TurnedBy(pk.groups.polynomial_sincos), "jnp.sin, jnp.cos": library}
     for batch in [8] if quick else [1, 1024]:
         steps = 10 if quick else max(50, 4000 // batch)
         qs, pis = C.initial_conditions(batch, seed=3)
