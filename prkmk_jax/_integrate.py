@@ -14,7 +14,7 @@ from ._bundles import BundleElement
 from ._fields import Time, VectorField
 from ._gradients import AbstractGradient, StoredSteps
 from ._loop import checked_start
-from .methods.base import RESULTS, AbstractMethod, no_compensation
+from .methods.base import RESULTS, AbstractMethod, as_traced, no_compensation
 
 
 class Continuation(eqx.Module):
@@ -116,7 +116,7 @@ def integrate(
     _check_method(method)
     _check_dt_value(dt)
     num_steps, save_every = _checked_counts(num_steps, save_every)
-    return _integrate(method, vector_field, y0, _traced(t0), _traced(dt), num_steps, args, save_every, throw, gradient)
+    return _integrate(method, vector_field, y0, as_traced(t0), as_traced(dt), num_steps, args, save_every, throw, gradient)
 
 
 @eqx.filter_jit
@@ -192,13 +192,6 @@ def _check_method(method) -> None:
             f"method must be a PRKMK method, a Splitting, or one built from them (Composition, Adjoint, Symmetrized), "
             f"got {type(method).__name__}."
         )
-
-
-def _traced(x):
-    """A Python number as an array, so that the compiled run takes it as an
-    argument (one compilation for every value, and no constant that XLA
-    folds with another rounding than `resume` computes with)."""
-    return jnp.asarray(x) if isinstance(x, (int, float, np.number)) and not isinstance(x, bool) else x
 
 
 def _check_dt_value(dt) -> None:

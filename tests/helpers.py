@@ -171,6 +171,25 @@ def bjorck_step(matrix):
     return matrix @ (3 * jnp.eye(matrix.shape[-1], dtype=matrix.dtype) - gram) / 2
 
 
+@functools.cache
+def compiled_value_and_grad(loss):
+    """`jax.jit(jax.value_and_grad(loss))`, one for each `loss`."""
+    return jax.jit(jax.value_and_grad(loss))
+
+
+def gradient_and_central_differences(loss, x, *rest, step=1e-5):
+    """`jax.grad` of `loss(x, *rest)` in the vector x, and its central
+    differences (loss(x + step·eₖ) − loss(x − step·eₖ))/(2 step), both from
+    one compiled program, `jax.value_and_grad`: its values at x ± step·eₖ
+    make the differences (no derivative enters them), its gradient at x is
+    the one checked. The same `loss` reuses its program."""
+    value_and_grad = compiled_value_and_grad(loss)
+    gradient = value_and_grad(x, *rest)[1]
+    value = lambda z: float(value_and_grad(z, *rest)[0])  # noqa: E731
+    differences = np.array([(value(x + step * e) - value(x - step * e)) / (2 * step) for e in np.eye(x.shape[0])])
+    return np.asarray(gradient), differences
+
+
 def max_leaf_difference(a, b) -> float:
     """max |a − b| over the entries of two pytrees of the same structure."""
     return max(float(jnp.max(jnp.abs(x - y))) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))

@@ -10,7 +10,17 @@ import pytest
 import scipy.linalg
 
 import prkmk_jax as pk
-from helpers import INERTIA, empirical_order, initial_state, max_leaf_difference, reference, rigid_body_field, state_vector
+from helpers import (
+    INERTIA,
+    compiled_value_and_grad,
+    empirical_order,
+    gradient_and_central_differences,
+    initial_state,
+    max_leaf_difference,
+    reference,
+    rigid_body_field,
+    state_vector,
+)
 
 COTANGENT = pk.Cotangent(pk.SO3)
 CARTESIAN = pk.Cartesian(pk.SO3)
@@ -287,11 +297,8 @@ def test_composition_gradient_matches_finite_differences_and_vmaps():
         traj = pk.integrate(method, field, pk.BundleElement(y0.base, pi0), 0.0, 0.1, 10, inertia, save_every=10)
         return jnp.sum(traj.ys.base.matrix[-1, :, 2] * jnp.array([0.3, -0.5, 0.8]))
 
-    grad = jax.jit(jax.grad(loss))(ARGS, y0.fiber)
-    loss_j = jax.jit(loss)
-    eps = 1e-5
-    fd = np.array([(loss_j(ARGS + eps * e, y0.fiber) - loss_j(ARGS - eps * e, y0.fiber)) / (2 * eps) for e in jnp.eye(3)])
+    grad, fd = gradient_and_central_differences(loss, ARGS, y0.fiber)
     np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-9 * np.abs(fd).max())
     batch = jnp.asarray(y0.fiber) * jnp.array([[1.0], [0.9], [1.1]])
     values = jax.jit(jax.vmap(loss, in_axes=(None, 0)))(ARGS, batch)
-    np.testing.assert_allclose(values, [loss_j(ARGS, p) for p in batch], rtol=0, atol=1e-13)
+    np.testing.assert_allclose(values, [compiled_value_and_grad(loss)(ARGS, p)[0] for p in batch], rtol=0, atol=1e-13)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import INERTIA, TOP_ARGS, initial_state, max_leaf_difference, rigid_body_field
+from helpers import INERTIA, TOP_ARGS, gradient_and_central_differences, initial_state, max_leaf_difference, rigid_body_field
 from prkmk_jax.scenes import FreeRigidBody, HeavyTop, TopParameters, random_rotation
 
 TOP_Y0 = pk.BundleElement(pk.SO3(jnp.asarray(random_rotation(5))), jnp.array([0.3, -0.4, 1.5]))
@@ -101,14 +101,10 @@ def test_gradient_in_the_lever_matches_finite_differences(batch, tableau):
     method = top.method(tableau, pk.Cayley())
     y0 = TOP_Y0 if batch is None else _batch_state(batch)
 
-    @jax.jit
     def loss(lever):
         return _final_momentum_projection(method, top, y0, TopParameters(TOP_ARGS.inertia, lever))
 
-    lever = TOP_ARGS.lever
-    grad = jax.grad(loss)(lever)
-    step = 1e-6
-    fd = np.array([(loss(lever + step * e) - loss(lever - step * e)) / (2 * step) for e in np.eye(3)])
+    grad, fd = gradient_and_central_differences(loss, TOP_ARGS.lever, step=1e-6)
     np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-8)
 
 
@@ -125,10 +121,12 @@ def test_a_vmapped_gradient_of_thirteen_stages_matches_finite_differences():
         return jnp.sum(final * jnp.array([0.2, -0.5, 1.0]))
 
     inertia = jnp.asarray(INERTIA)
-    grads = jax.jit(jax.vmap(jax.grad(projection, argnums=1), in_axes=(0, None)))(y0, inertia)
-    values = jax.jit(jax.vmap(projection, in_axes=(0, None)))
+    # One program: the gradients, and the values for the central differences.
+    values_and_grads = jax.jit(jax.vmap(jax.value_and_grad(projection, argnums=1), in_axes=(0, None)))
+    grads = values_and_grads(y0, inertia)[1]
     step = 1e-6
-    fd = np.stack([(values(y0, inertia + step * e) - values(y0, inertia - step * e)) / (2 * step) for e in np.eye(3)], axis=-1)
+    values = [(values_and_grads(y0, inertia + step * e)[0], values_and_grads(y0, inertia - step * e)[0]) for e in np.eye(3)]
+    fd = np.stack([(up - down) / (2 * step) for up, down in values], axis=-1)
     np.testing.assert_allclose(grads, fd, rtol=1e-6, atol=1e-8)
 
 

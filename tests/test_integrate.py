@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import INERTIA, initial_state, rigid_body_field
+from helpers import INERTIA, gradient_and_central_differences, initial_state, max_leaf_difference, rigid_body_field
 
 COTANGENT = pk.Cotangent(pk.SO3)
 FIELD = rigid_body_field(COTANGENT, "body")
@@ -99,6 +99,29 @@ def test_a_plain_call_compiles_once_per_shape():
     assert len(traces) > first
 
 
+def test_a_plain_step_compiles_once_per_shape_and_is_the_traced_step():
+    """`method.step` and `symmetry_defect` called as they are trace once for
+    new values of the same shapes (t and dt as Python numbers too); inside
+    `jit` the step is traced into the caller's program and takes the same
+    step."""
+    method, traces = _method(pk.lobatto_iiia_iiib4), []
+
+    def field(t, y, inertia):
+        traces.append(None)
+        return FIELD(t, y, inertia)
+
+    first = method.step(field, 0.0, initial_state(COTANGENT, 0), 0.05, jnp.asarray(INERTIA))
+    once = len(traces)
+    second = method.step(field, 0.3, initial_state(COTANGENT, 1), 0.02, 2 * jnp.asarray(INERTIA))
+    assert len(traces) == once and not np.array_equal(first.y.fiber, second.y.fiber)
+    inside = jax.jit(lambda y, a: method.step(field, 0.3, y, 0.02, a))(initial_state(COTANGENT, 1), 2 * jnp.asarray(INERTIA))
+    assert max_leaf_difference(inside.y, second.y) <= 1e-15
+    pk.symmetry_defect(method, field, initial_state(COTANGENT, 0), 0.1, jnp.asarray(INERTIA))
+    after_defect = len(traces)
+    defect = pk.symmetry_defect(method, field, initial_state(COTANGENT, 1), 0.05, 2 * jnp.asarray(INERTIA))
+    assert len(traces) == after_defect and float(defect) > 0
+
+
 def _loss_fn(method, bundle, field):
     def loss(inertia, y0):
         traj = pk.integrate(method, field, y0, 0.0, 0.05, 40, inertia, save_every=10)
@@ -121,11 +144,7 @@ def test_gradient_wrt_args_matches_finite_differences(bundle, tab, coords):
     method = pk.PRKMK(bundle, coords, tab, form="body")
     loss = _loss_fn(method, bundle, rigid_body_field(bundle, "body"))
     y0 = initial_state(bundle)
-    inertia = jnp.asarray(INERTIA)
-    grad = jax.jit(jax.grad(loss))(inertia, y0)
-    loss = jax.jit(loss)
-    eps = 1e-5
-    fd = np.array([(loss(inertia + eps * e, y0) - loss(inertia - eps * e, y0)) / (2 * eps) for e in jnp.eye(3)])
+    grad, fd = gradient_and_central_differences(loss, jnp.asarray(INERTIA), y0)
     np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-9 * np.abs(fd).max())
 
 
@@ -139,12 +158,14 @@ def test_gradient_wrt_initial_momentum_under_vmap():
 
     pis = jnp.asarray(y0.fiber) * jnp.array([[1.0], [0.8], [1.3]])
     inertia = jnp.asarray(INERTIA)
-    grads = jax.jit(jax.vmap(jax.grad(loss_of_pi), in_axes=(0, None)))(pis, inertia)
-    loss_of_pi = jax.jit(loss_of_pi)
+    # One program: the gradients of the batch, and its values at the
+    # momenta moved along each axis for the central differences.
+    values_and_grads = jax.jit(jax.vmap(jax.value_and_grad(loss_of_pi), in_axes=(0, None)))
+    grads = values_and_grads(pis, inertia)[1]
     eps = 1e-5
-    for b in range(3):
-        fd = np.array([(loss_of_pi(pis[b] + eps * e, inertia) - loss_of_pi(pis[b] - eps * e, inertia)) / (2 * eps) for e in jnp.eye(3)])
-        np.testing.assert_allclose(grads[b], fd, rtol=1e-6, atol=1e-9 * np.abs(fd).max())
+    values = [(values_and_grads(pis + eps * e, inertia)[0], values_and_grads(pis - eps * e, inertia)[0]) for e in np.eye(3)]
+    fd = np.stack([(up - down) / (2 * eps) for up, down in values], axis=-1)
+    np.testing.assert_allclose(grads, fd, rtol=1e-6, atol=1e-9 * np.abs(fd).max())
 
 
 @pytest.mark.parametrize(

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import INERTIA, initial_state, max_leaf_difference, reference, rigid_body_field, state_vector
+from helpers import INERTIA, gradient_and_central_differences, initial_state, max_leaf_difference, reference, rigid_body_field, state_vector
 
 COTANGENT = pk.Cotangent(pk.SO3)
 FIELD = rigid_body_field(COTANGENT, "body")
@@ -74,26 +74,23 @@ def test_dense_solution_evaluate_and_backward_solve():
     np.testing.assert_allclose(back.ys.fiber[0], sol.evaluate(0.5).fiber, atol=1e-6)
 
 
-@pytest.mark.parametrize(
-    "adjoint",
-    [diffrax.RecursiveCheckpointAdjoint(), diffrax.DirectAdjoint(), diffrax.ForwardMode()],
-    ids=["checkpoint", "direct", "forward"],
-)
-def test_gradients_match_finite_differences(adjoint):
+def test_gradients_of_each_adjoint_match_finite_differences():
+    """diffrax's RecursiveCheckpointAdjoint, DirectAdjoint and ForwardMode,
+    against central differences of the solve (through dense output)."""
     y0 = initial_state(COTANGENT)
     method = _method(pk.stormer_verlet)
     target = jnp.array([0.3, -0.2, 0.9])
 
-    def loss(inertia):
+    def loss(inertia, adjoint=diffrax.RecursiveCheckpointAdjoint()):
         sol = _solve(method, 1.0, 0.05, y0, inertia, saveat=diffrax.SaveAt(ts=jnp.array([0.33, 0.75, 1.0])), adjoint=adjoint, max_steps=32)
         return jnp.sum((sol.ys.base.matrix[:, :, 2] - target) ** 2)
 
     inertia = jnp.asarray(INERTIA)
-    grad = jax.jit(jax.jacfwd(loss) if isinstance(adjoint, diffrax.ForwardMode) else jax.grad(loss))(inertia)
-    loss_j = jax.jit(loss)
-    eps = 1e-5
-    fd = np.array([(loss_j(inertia + eps * e) - loss_j(inertia - eps * e)) / (2 * eps) for e in jnp.eye(3)])
-    np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-9 * np.abs(fd).max())
+    checkpointed, fd = gradient_and_central_differences(loss, inertia)
+    direct = jax.jit(jax.grad(lambda i: loss(i, diffrax.DirectAdjoint())))(inertia)
+    forward = jax.jit(jax.jacfwd(lambda i: loss(i, diffrax.ForwardMode())))(inertia)
+    for grad in (checkpointed, direct, forward):
+        np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-9 * np.abs(fd).max())
 
 
 def test_gradient_with_integer_args_and_backward_in_time():
@@ -113,11 +110,8 @@ def test_gradient_with_integer_args_and_backward_in_time():
         )
         return jnp.sum(sol.ys.fiber[-1] * jnp.array([0.3, -0.2, 0.9]))
 
-    inertia, loss_j = jnp.asarray(INERTIA), jax.jit(loss)
     for t1 in (jnp.asarray(0.5), jnp.asarray(-0.5)):  # traced: one program both ways
-        grad = jax.jit(jax.grad(loss))(inertia, t1)
-        eps = 1e-6
-        fd = np.array([(loss_j(inertia + eps * e, t1) - loss_j(inertia - eps * e, t1)) / (2 * eps) for e in jnp.eye(3)])
+        grad, fd = gradient_and_central_differences(loss, jnp.asarray(INERTIA), t1, step=1e-6)
         np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-10)
 
 

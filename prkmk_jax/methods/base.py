@@ -18,6 +18,8 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
+from jax.core import Tracer
 from jaxtyping import Array, PyTree
 
 from .._bundles import AbstractBundle, AlgebraPair, BundleElement, Increment
@@ -393,7 +395,29 @@ class AbstractMethod(eqx.Module):
         """One step from (t, y) to t + dt. `carried` is the previous step's
         `Step.carried`, whose stage slopes start this step's implicit stages
         (an O(h²) guess); None starts them from the field at y, as
-        `initial_carried` says. Both converge to the same stage solution."""
-        if carried is None:
-            carried = self.initial_carried(vector_field, t, y, args)
-        return self.carried_step(vector_field, t, y, dt, args, carried)
+        `initial_carried` says. Both converge to the same stage solution.
+
+        Called on concrete values (not inside `jit`, `vmap` or a
+        derivative), the step runs compiled, once for each shape of its
+        inputs, as `integrate` does; run operation by operation, a fresh
+        process would compile each of its hundreds of operations on its own.
+        Inside a traced function it is traced there."""
+        if not any(isinstance(leaf, Tracer) for leaf in jax.tree.leaves((vector_field, t, y, dt, args, carried))):
+            return _compiled_step(self, vector_field, as_traced(t), y, as_traced(dt), args, carried)
+        return _step(self, vector_field, t, y, dt, args, carried)
+
+
+def as_traced(x):
+    """A Python or NumPy number as an array, so that a compiled function
+    takes it as an argument (one compilation for every value, and no
+    constant that XLA folds with another rounding than the caller's)."""
+    return jnp.asarray(x) if isinstance(x, (int, float, np.number)) and not isinstance(x, bool) else x
+
+
+def _step(method: AbstractMethod, vector_field, t, y, dt, args, carried) -> Step:
+    if carried is None:
+        carried = method.initial_carried(vector_field, t, y, args)
+    return method.carried_step(vector_field, t, y, dt, args, carried)
+
+
+_compiled_step = eqx.filter_jit(_step)

@@ -13,6 +13,7 @@ not. `Symmetrized(method)` is symmetric whatever the method, at the cost of
 a second, fully implicit half step.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, PyTree
@@ -77,8 +78,13 @@ def symmetry_defect(
 ) -> Array:
     """max |Φ_{−h}(Φ_h(y)) − y| over the entries of the state (in its matrix
     or vector embedding): zero up to round-off and the stage tolerance for a
-    symmetric method, O(h^{p+1}) for a non-symmetric one of order p."""
-    t, dt = jnp.asarray(t), jnp.asarray(dt)
+    symmetric method, O(h^{p+1}) for a non-symmetric one of order p.
+    Compiled once for each shape of its inputs."""
+    return _symmetry_defect(method, vector_field, y, jnp.asarray(dt), args, jnp.asarray(t))
+
+
+@eqx.filter_jit
+def _symmetry_defect(method, vector_field, y, dt, args, t):
     y_forward = method.step(vector_field, t, y, dt, args).y
     y_back = method.step(vector_field, t + dt, y_forward, -dt, args).y
     return largest_entry_difference(y_back, y)
