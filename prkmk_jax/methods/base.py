@@ -401,7 +401,9 @@ class AbstractMethod(eqx.Module):
         derivative), the step runs compiled, once for each shape of its
         inputs, as `integrate` does; run operation by operation, a fresh
         process would compile each of its hundreds of operations on its own.
-        Inside a traced function it is traced there."""
+        The field and the method are part of the compiled program: a new
+        field function (a lambda made at each call) compiles again. Inside a
+        traced function the step is traced there."""
         if not any(isinstance(leaf, Tracer) for leaf in jax.tree.leaves((vector_field, t, y, dt, args, carried))):
             return _compiled_step(self, vector_field, as_traced(t), y, as_traced(dt), args, carried)
         return _step(self, vector_field, t, y, dt, args, carried)
