@@ -173,6 +173,27 @@ def _simulator(run: Run):
     return method, field, simulate
 
 
+def _step_of(run: Run) -> Run:
+    """The run with what its step does not depend on (its name, length and
+    saving) set to one value: runs of the same step share its programs."""
+    return dataclasses.replace(run, name="", t_end=run.h, figure=None, save_every=1)
+
+
+@functools.cache
+def _symplecticity_defect(step_run: Run):
+    """The symplecticity defect of a run's step at (y0, inertia), compiled
+    once for each step (`_step_of`): the step-map Jacobian is the costliest
+    program of a run to compile."""
+    method, bundle = method_of(step_run), step_run.bundle
+
+    @jax.jit
+    def defect(y0, inertia):
+        step = _step_map(method, step_run.scene, bundle, step_run.h, inertia)
+        return diagnostics.symplecticity_defect(step, *rb.attitude_and_momentum(bundle, y0))
+
+    return defect
+
+
 def execute(run: Run, seed: int, symplecticity: bool = True, cache_dir: Path | None = None) -> tuple[dict, dict]:
     """Integrate one run; returns (its results record, its arrays).
     `symplecticity=False` skips the (compile-heavy) step-map Jacobian."""
@@ -190,8 +211,7 @@ def execute(run: Run, seed: int, symplecticity: bool = True, cache_dir: Path | N
     curves, drifts = _trajectory_diagnostics(field, traj.ys, inertia)
     defect = None
     if run.n == 3 and symplecticity:
-        step = _step_map(method, field, run.bundle, run.h, inertia)
-        defect = float(jax.jit(lambda y: diagnostics.symplecticity_defect(step, *rb.attitude_and_momentum(run.bundle, y)))(y0))
+        defect = float(_symplecticity_defect(_step_of(run))(y0, inertia))
 
     h_t = np.asarray(curves["energy"])
     energy_error = h_t - h_t[0]
