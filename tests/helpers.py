@@ -177,6 +177,15 @@ def compiled_value_and_grad(loss):
     return jax.jit(jax.value_and_grad(loss))
 
 
+def central_differences(value, x, step):
+    """(value(x + step·eₖ) − value(x − step·eₖ))/(2 step) for each entry k
+    of x's last axis, stacked as the last axis (x a vector, or a batch of
+    vectors that `value` maps row by row)."""
+    return np.stack(
+        [(np.asarray(value(x + step * e)) - np.asarray(value(x - step * e))) / (2 * step) for e in np.eye(x.shape[-1])], axis=-1
+    )
+
+
 def gradient_and_central_differences(loss, x, *rest, step=1e-5):
     """`jax.grad` of `loss(x, *rest)` in the vector x, and its central
     differences (loss(x + step·eₖ) − loss(x − step·eₖ))/(2 step), both from
@@ -185,9 +194,7 @@ def gradient_and_central_differences(loss, x, *rest, step=1e-5):
     the one checked. The same `loss` reuses its program."""
     value_and_grad = compiled_value_and_grad(loss)
     gradient = value_and_grad(x, *rest)[1]
-    value = lambda z: float(value_and_grad(z, *rest)[0])  # noqa: E731
-    differences = np.array([(value(x + step * e) - value(x - step * e)) / (2 * step) for e in np.eye(x.shape[0])])
-    return np.asarray(gradient), differences
+    return np.asarray(gradient), central_differences(lambda z: value_and_grad(z, *rest)[0], x, step)
 
 
 def max_leaf_difference(a, b) -> float:

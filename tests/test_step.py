@@ -182,7 +182,12 @@ def test_step_again_at_solved_stages_is_the_step_and_its_derivative(make):
     @eqx.filter_jit
     def step_and_vjp(step_of, y, a):
         """The step and the VJP of its end state at `cotangent`, one program."""
-        _, vjp, step = eqx.filter_vjp(lambda y, a: (lambda s: (s.y, s))(step_of(y, a)), y, a, has_aux=True)
+
+        def end_and_step(y, a):
+            step = step_of(y, a)
+            return step.y, step
+
+        _, vjp, step = eqx.filter_vjp(end_and_step, y, a, has_aux=True)
         return step, vjp(cotangent)
 
     solved, expected = step_and_vjp(lambda y, a: method.step(field, 0.0, y, H, a), y0, args)
