@@ -173,3 +173,22 @@ def test_diffeqsolve_runs_in_the_dtype_of_its_times():
     np.testing.assert_allclose(sol.ys.fiber[-1], traj.ys.fiber[-1], rtol=0, atol=1e-5)
     promoted = diffrax.diffeqsolve(pk.PRKMKTerm(FREE), pk.PRKMKSolver(SV), 0.0, 1.0, 0.05, y32, inertia)
     assert promoted.ys.fiber.dtype == jnp.float64
+
+
+def test_a_long_float32_run_stays_near_the_same_run_in_float64():
+    """Sixteen free bodies, 16000 steps of SV from the same float32 start:
+    the float32 run rounds its sums with compensation (`AbstractMethod.advance`)
+    and stays within a hundred ulps of the run in float64; with the state
+    summed as it is at every step (`compensated_sum=False`) the difference
+    grows with the number of steps, past this bound."""
+    steps = 16_000
+    start = _f32(jax.tree.map(lambda *a: jnp.stack(a), *[initial_state(COTANGENT, seed) for seed in range(16)]))
+    inertia = jnp.asarray(INERTIA, jnp.float32)
+
+    def final(method, y0, inertia):
+        return pk.integrate(method, FREE, y0, 0.0, 10.0 / steps, steps, inertia, save_every=steps).ys
+
+    y64 = final(SV, *jax.tree.map(lambda a: a.astype(jnp.float64), (start, inertia)))
+    for method, within in ((SV, True), (pk.PRKMK(COTANGENT, pk.Exp(), pk.stormer_verlet, form="body", compensated_sum=False), False)):
+        y32 = final(method, start, inertia)
+        assert (max_leaf_difference(jax.tree.map(lambda a: a.astype(jnp.float64), y32), y64) < 100 * EPS32) == within

@@ -170,10 +170,11 @@ class Step(eqx.Module):
     """The implicit iterations the step took."""
     rounding: BundleElement | None
     """What the update lost to rounding, array by array: y_start + change =
-    y + rounding exactly, for the change the step computed (`advance`).
-    The drivers carry it on (`compensated`). None where the step has no
-    such sum: a `Splitting`'s rotations, and low precision, where the state
-    is renormalised instead."""
+    y + rounding exactly, for the change the step computed (`advance`; in
+    low precision y is then renormalised onto the group where it drifted,
+    a correction this leaves out). The drivers carry it on (`compensated`).
+    None where the step has no such sum: a `Splitting`'s rotations, or a
+    PRKMK step with `compensated_sum=False`."""
     carried: Any
     """What the next step starts from: the field at this step's start and,
     for implicit stages, this step's stage slopes, the next step's starting
@@ -329,19 +330,24 @@ class AbstractMethod(eqx.Module):
         the driver to carry on (`compensated`). Without, the product as it
         is, and no rounding (None).
 
-        In low precision (machine epsilon above `LOW_PRECISION_EPS`) the
-        product is taken as it is and corrected back onto the group where
-        it has drifted off by more than a few ulps
-        (`AbstractBundle.renormalized`): there the rounding of f(U) and of the
-        product is systematic for steady motions and would pull the state off
-        the group a little every step. The correction has no exact sum to
-        compensate: the rounding is None."""
-        if is_low_precision(jnp.result_type(*jax.tree.leaves(y))):
-            return self.bundle.renormalized(self.apply_increment(U, y)), None
+        In low precision (machine epsilon above `LOW_PRECISION_EPS`) the new
+        state is also corrected back onto the group where it has drifted off
+        by more than a few ulps (`AbstractBundle.renormalized`): there the
+        rounding of f(U) is systematic for steady motions and would pull the
+        state off the group a little every step. The sum is compensated all
+        the same: the correction moves the state by a few ulps now and then,
+        but the sum rounds at every step, and with its rounding carried on a
+        long float32 run stays near the same run in float64, where without it
+        their difference grows with the number of steps
+        (`tests/test_float32.py`)."""
+        low = is_low_precision(jnp.result_type(*jax.tree.leaves(y)))
         if not compensate:
-            return self.apply_increment(U, y), None
+            y_next = self.apply_increment(U, y)
+            return (self.bundle.renormalized(y_next) if low else y_next), None
         change = computed_once(self.bundle.apply_change(self.coordinates, U, y, self.form))
         y_next, rounding = tree_two_sum(y, change)
+        if low:
+            y_next = self.bundle.renormalized(y_next)
         return y_next, jax.lax.stop_gradient(rounding)
 
     def increment_between(self, y: BundleElement, y_next: BundleElement) -> AlgebraPair:
