@@ -22,7 +22,8 @@ contiguous over the batch: the layout XLA vectorises. A rotation's sine and
 cosine are computed once (`groups.computed_once`) and read by every row it
 turns; XLA fuses the rest of a step into few loops. In low precision a
 rotation turns its rows by three shears (`PlanarTurn`), whose rounding does
-not scale them.
+not scale them; a `Splitting` step there moves the state's change instead
+(`AbstractExactFlow.moved_change`) and adds it to the state once.
 """
 
 import abc
@@ -152,6 +153,14 @@ class AbstractExactFlow(eqx.Module):
         """`z` moved by the flow that `coefficients` describe."""
 
     @abc.abstractmethod
+    def moved_change(self, start: Packed, change: Packed, coefficients: PyTree) -> Packed:
+        """The state start + `change` moved, written as its change from
+        `start`: `change` plus what the flow adds, computed so that it is
+        rounded relative to what the flow adds, not to the state. A
+        low-precision `Splitting` step runs its flows this way and adds the
+        whole change to the state once."""
+
+    @abc.abstractmethod
     def moved_back(self, z: Packed, coefficients: PyTree) -> Packed:
         """The inverse of `moved` for the same coefficients."""
 
@@ -164,6 +173,10 @@ class AbstractExactFlow(eqx.Module):
         """The state `z` moved by the part's flow over time `h` (either sign),
         the part evaluated at time `t`."""
         return self.moved(z, self.coefficients(coordinates, t, z, h, args))
+
+    def flow_change(self, coordinates: AbstractCoordinates, t: Array, start: Packed, change: Packed, h: Array, args: PyTree) -> Packed:
+        """`flow` of start + `change`, as `moved_change`."""
+        return self.moved_change(start, change, self.coefficients(coordinates, t, start + change, h, args))
 
 
 class AxisRotation(AbstractExactFlow):
@@ -205,6 +218,17 @@ class AxisRotation(AbstractExactFlow):
             return turned_rows(z, self.pairs, turn_of(sine, cosine))
         return rotated_rows(z, self.pairs, sine, cosine)
 
+    def moved_change(self, start, change, coefficients):
+        # (x, y) ↦ (x + (c − 1)x + s y, y + (c − 1)y − s x), with c − 1 =
+        # −s²/(1 + c) where the cosine is near 1 and c − 1 itself elsewhere.
+        sine, cosine = coefficients
+        cosine_less_one = computed_once(jnp.where(cosine >= 0, -sine * sine / (1 + jnp.abs(cosine)), cosine - 1))
+        rows = list(change)
+        for j, k in self.pairs:
+            x, y = start[j] + change[j], start[k] + change[k]
+            rows[j], rows[k] = change[j] + (cosine_less_one * x + sine * y), change[k] + (cosine_less_one * y - sine * x)
+        return jnp.stack(rows)
+
     def moved_back(self, z, coefficients):
         sine, cosine = coefficients
         return rotated_array(z, self.pairs, -sine, cosine)
@@ -241,6 +265,9 @@ class MomentumKick(AbstractExactFlow):
     def moved(self, z, coefficients):
         return self._with_momentum_change(z, coefficients)
 
+    def moved_change(self, start, change, coefficients):
+        return self._with_momentum_change(change, coefficients)
+
     def moved_back(self, z, coefficients):
         return self._with_momentum_change(z, -coefficients)
 
@@ -271,7 +298,9 @@ class AbstractSplitScene(AbstractFieldOnBundle):
     @abc.abstractmethod
     def pack(self, y: BundleElement, args: PyTree, /) -> Packed:
         """The state as one array, components first (see `Packed`), in the
-        frame the parts of `exact_flows(args)` are written in."""
+        frame the parts of `exact_flows(args)` are written in: a relabelling
+        of the state's entries, so that what a low-precision step's sum lost
+        unpacks as the state does (`Step.rounding`)."""
 
     @abc.abstractmethod
     def unpack(self, z: Packed, like: BundleElement, args: PyTree, /) -> BundleElement:

@@ -198,6 +198,7 @@ STATIC = {
         "integrates the scene it was built for",
     ),
     "splitting of a scene that does not split": (lambda: SphericalTop().splitting(), TypeError, "splits into exactly solvable parts"),
+    "splitting, compensated_sum not a bool": (lambda: pk.Splitting(FREE_BODY, compensated_sum=1), TypeError, "compensated_sum must be"),
     "splitting of the symmetric body on SO(4)": (
         lambda: _integrate(SO4_STATE, method=SYMMETRIC_SO4.splitting(), field=SYMMETRIC_SO4, args=jnp.ones(4)),
         ValueError,

@@ -176,11 +176,12 @@ def test_diffeqsolve_runs_in_the_dtype_of_its_times():
 
 
 def test_a_long_float32_run_stays_near_the_same_run_in_float64():
-    """Sixteen free bodies, 16000 steps of SV from the same float32 start:
-    the float32 run rounds its sums with compensation (`AbstractMethod.advance`)
-    and stays within a hundred ulps of the run in float64; with the state
-    summed as it is at every step (`compensated_sum=False`) the difference
-    grows with the number of steps, past this bound."""
+    """Sixteen free bodies, 16000 steps from the same float32 start: SV and
+    the Strang splitting round their sums with compensation in float32
+    (`AbstractMethod.advance`, `exact_flows.AbstractExactFlow.moved_change`)
+    and stay within a hundred ulps of the same runs in float64; with the
+    state rounded as it is at every step (`compensated_sum=False`) the
+    difference grows with the number of steps, past this bound."""
     steps = 16_000
     start = _f32(jax.tree.map(lambda *a: jnp.stack(a), *[initial_state(COTANGENT, seed) for seed in range(16)]))
     inertia = jnp.asarray(INERTIA, jnp.float32)
@@ -188,7 +189,9 @@ def test_a_long_float32_run_stays_near_the_same_run_in_float64():
     def final(method, y0, inertia):
         return pk.integrate(method, FREE, y0, 0.0, 10.0 / steps, steps, inertia, save_every=steps).ys
 
-    y64 = final(SV, *jax.tree.map(lambda a: a.astype(jnp.float64), (start, inertia)))
-    for method, within in ((SV, True), (pk.PRKMK(COTANGENT, pk.Exp(), pk.stormer_verlet, form="body", compensated_sum=False), False)):
-        y32 = final(method, start, inertia)
-        assert (max_leaf_difference(jax.tree.map(lambda a: a.astype(jnp.float64), y32), y64) < 100 * EPS32) == within
+    plain_sv = pk.PRKMK(COTANGENT, pk.Exp(), pk.stormer_verlet, form="body", compensated_sum=False)
+    plain_splitting = pk.Splitting(FREE, compensated_sum=False)
+    cases = ((SV, SV, True), (FREE.splitting(), FREE.splitting(), True), (plain_sv, SV, False), (plain_splitting, FREE.splitting(), False))
+    for method, twin, within in cases:
+        y32, y64 = final(method, start, inertia), final(twin, *jax.tree.map(lambda a: a.astype(jnp.float64), (start, inertia)))
+        assert (max_leaf_difference(jax.tree.map(lambda a: a.astype(jnp.float64), y32), y64) < 100 * EPS32) == within, method

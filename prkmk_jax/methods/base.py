@@ -173,8 +173,8 @@ class Step(eqx.Module):
     y + rounding exactly, for the change the step computed (`advance`; in
     low precision y is then renormalised onto the group where it drifted,
     a correction this leaves out). The drivers carry it on (`compensated`).
-    None where the step has no such sum: a `Splitting`'s rotations, or a
-    PRKMK step with `compensated_sum=False`."""
+    None where the step has no such sum: a `Splitting`'s rotations in
+    float64, or a PRKMK step with `compensated_sum=False`."""
     carried: Any
     """What the next step starts from: the field at this step's start and,
     for implicit stages, this step's stage slopes, the next step's starting

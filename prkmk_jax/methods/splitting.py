@@ -34,6 +34,7 @@ import jax.numpy as jnp
 from jaxtyping import PyTree
 
 from .._bundles import BundleElement
+from .._exact_sums import two_sum
 from .._fields import Time, VectorField
 from ..compositions import CompositionCoefficients
 from ..coordinates import AbstractCoordinates, Exp
@@ -82,6 +83,12 @@ class Splitting(AbstractMethod):
       run's in the last bits).
     - `coordinates`: `Exp()` (exact flows, default), `Cayley()` or any
       `AbstractCoordinates` (each rotation turned as its `planar_rotation` says).
+    - `compensated_sum`: in low precision (float32), True (default) runs
+      the sub-steps on the step's change and adds it to the state once,
+      carrying what that sum loses into the next step (`compensated`), so
+      that a long run's rounding does not accumulate; False turns the state
+      itself, by shears, a quicker step whose rounding does accumulate. In
+      float64 the two are the same step.
 
     The method integrates `scene` only: `integrate`, `resume` and
     `PRKMKSolver` refuse another vector field. A batch runs as fast under
@@ -94,8 +101,11 @@ class Splitting(AbstractMethod):
     scene: AbstractSplitScene
     coefficients: CompositionCoefficients | None = eqx.field(static=True, default=None)
     coordinates: AbstractCoordinates = Exp()
+    compensated_sum: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
+        if not isinstance(self.compensated_sum, bool):
+            raise TypeError(f"compensated_sum must be True or False, got {self.compensated_sum!r}.")
         if not isinstance(self.scene, AbstractSplitScene):
             raise TypeError(
                 f"Splitting needs a scene that splits into exactly solvable parts (an AbstractSplitScene such as FreeRigidBody), "
@@ -156,11 +166,22 @@ class Splitting(AbstractMethod):
         # composed step has dozens), while a barrier after every sub-step
         # costs more than it saves within one Strang step.
         fused = 2 * len(flows) - 1
+        # In low precision the sub-steps move the step's change from z, not
+        # z itself (`moved_change`), rounded relative to the change, and the
+        # change is added to z once, its rounding handed on (`Step.rounding`):
+        # a rounded rotation is much the same step after step of a steady
+        # motion, and so is its rounding at the state's scale, which a long
+        # run would accumulate.
+        low = is_low_precision(dtype)
+        change_only = low and self.compensated_sum
 
         def unrolled():
-            z_k = z
+            z_k = jnp.zeros_like(z) if change_only else z
             for k, (part, start, step) in enumerate(plan, start=1):
-                z_k = flows[part].flow(self.coordinates, t + start * dt, z_k, step * dt, args)
+                if change_only:
+                    z_k = flows[part].flow_change(self.coordinates, t + start * dt, z, z_k, step * dt, args)
+                else:
+                    z_k = flows[part].flow(self.coordinates, t + start * dt, z_k, step * dt, args)
                 if flows[part].always_materialised or (k % fused == 0 and k < len(plan)):
                     z_k = jax.lax.optimization_barrier(z_k)
             return z_k
@@ -168,20 +189,27 @@ class Splitting(AbstractMethod):
         # A composed step's derivative is that of its Strang steps in a
         # `lax.scan`: unrolled, XLA compiles the derivative of dozens of
         # sub-steps as one graph, many times larger (`differentiated_as`).
-        z = (
-            unrolled()
-            if self.coefficients is None
-            else differentiated_as(unrolled, lambda: self._strang_steps_in_loop(flows, t, dt, z, args))
-        )
-        if is_low_precision(dtype):
+        def in_loop():
+            z_end = self._strang_steps_in_loop(flows, t, dt, z, args)
+            return z_end - z if change_only else z_end
+
+        z_k = unrolled() if self.coefficients is None else differentiated_as(unrolled, in_loop)
+        rounding = None
+        if change_only:
+            # What the sum lost is unpacked as the state is (a relabelling of
+            # its entries, `AbstractSplitScene.pack`).
+            z, lost = two_sum(z, z_k)
+            rounding = jax.lax.stop_gradient(self.scene.unpack(lost, y, args))
+        else:
+            z = z_k
+        if low:
             # As `AbstractMethod.advance`: the rounding of each rotation is
             # systematic for steady motions and would pull the state off the group.
             z = renormalized_rotations(z, self.scene.rotation_rows)
         y_next = self.scene.unpack(z, y, args)
         field_now = self.generator(vector_field, t, y, args)
         result = flag_nonfinite(RESULTS.successful, y_next)
-        # Rotations of the packed rows, not a sum: nothing to compensate.
-        return Step(y_next, self.increment_between(y, y_next), result, jnp.array(0, jnp.int32), None, field_now)
+        return Step(y_next, self.increment_between(y, y_next), result, jnp.array(0, jnp.int32), rounding, field_now)
 
     def pulled_back_step(self, t, y_next, dt, args, cotangent):
         """In float64, `reverse_step`: undone and differentiated from the
