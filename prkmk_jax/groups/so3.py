@@ -1,5 +1,6 @@
 """SO(3) with closed forms; so(3) is stored as 3-vectors (hat map u ↦ û)."""
 
+import math
 from typing import ClassVar, Self
 
 import equinox as eqx
@@ -7,13 +8,15 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._util import as_array, check_floating, taylor_or_exact
+from ._util import as_array, check_floating, is_low_precision, taylor_or_exact
 from .rotation import AbstractRotationGroup
 from .trig import computed_once
 
 # Below this θ² the Taylor branches are used; the exact forms that cancel
 # (θ − sin θ)/θ³ and the dexp⁻¹ coefficient lose ~eps/θ² relative accuracy.
 _SMALL = 1e-2
+# In low precision the rotation coefficients' series runs further, up to θ² = 1.
+_SMALL_LOW_PRECISION = 1.0
 
 # so(3) ≅ ℝ³ (u ↦ û) and its dual, with any leading batch axes.
 Vector3 = Float[Array, "*batch 3"]
@@ -134,7 +137,8 @@ def _rotation_coefficients_jvp(primals, tangents):
 
 def _rotation_coefficients_of(t2):
     """(sin θ/θ, (1 − cos θ)/θ²), the second as ½(sin(θ/2)/(θ/2))², which
-    does not cancel. Taylor branches below `_SMALL` (double where).
+    does not cancel. Taylor branches below `_SMALL` (in low precision
+    `_SMALL_LOW_PRECISION`; double where).
 
     Two sines rather than one sine and cosine of θ/2: XLA's CPU fusion
     recomputes a cosine in every fusion that consumes it (it treats it as
@@ -143,14 +147,20 @@ def _rotation_coefficients_of(t2):
     square root and one double `where` here instead of two `taylor_or_exact`
     calls, which written separately also measured slower.
     """
-    small = t2 < _SMALL
-    theta = jnp.sqrt(jnp.where(small, _SMALL, t2))
+    # In low precision the series runs up to θ = 1 (eight terms): the
+    # sines' rounding, divided by θ, keeps its sign over long stretches of
+    # a motion and a long float32 run's |Π| drifted with it; the series'
+    # rounding changes sign far more often (`round_off.py`'s float32 rows).
+    low = is_low_precision(t2.dtype)
+    below, terms = (_SMALL_LOW_PRECISION, 8) if low else (_SMALL, 5)
+    small = t2 < below
+    theta = jnp.sqrt(jnp.where(small, below, t2))
     half = 0.5 * theta
     sinc_half = jnp.sin(half) / half
     a_exact = jnp.sin(theta) / theta
     b_exact = 0.5 * sinc_half * sinc_half
-    a_taylor = _poly(t2, [1.0, -1 / 6, 1 / 120, -1 / 5040, 1 / 362880])
-    b_taylor = _poly(t2, [0.5, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800])
+    a_taylor = _poly(t2, [(-1) ** k / math.factorial(2 * k + 1) for k in range(terms)])
+    b_taylor = _poly(t2, [(-1) ** k / math.factorial(2 * k + 2) for k in range(terms)])
     return jnp.where(small, a_taylor, a_exact), jnp.where(small, b_taylor, b_exact)
 
 
