@@ -340,15 +340,15 @@ class AbstractMethod(eqx.Module):
         long float32 run stays near the same run in float64, where without it
         their difference grows with the number of steps
         (`tests/test_float32.py`)."""
-        low = is_low_precision(jnp.result_type(*jax.tree.leaves(y)))
-        if not compensate:
-            y_next = self.apply_increment(U, y)
-            return (self.bundle.renormalized(y_next) if low else y_next), None
-        change = computed_once(self.bundle.apply_change(self.coordinates, U, y, self.form))
-        y_next, rounding = tree_two_sum(y, change)
-        if low:
+        if compensate:
+            change = computed_once(self.bundle.apply_change(self.coordinates, U, y, self.form))
+            y_next, rounding = tree_two_sum(y, change)
+            rounding = jax.lax.stop_gradient(rounding)
+        else:
+            y_next, rounding = self.apply_increment(U, y), None
+        if is_low_precision(jnp.result_type(*jax.tree.leaves(y))):
             y_next = self.bundle.renormalized(y_next)
-        return y_next, jax.lax.stop_gradient(rounding)
+        return y_next, rounding
 
     def increment_between(self, y: BundleElement, y_next: BundleElement) -> AlgebraPair:
         """The U near 0 with `apply_increment(U, y) = y_next`: f⁻¹(y_next·y⁻¹)
