@@ -564,6 +564,7 @@ def main(argv=None):
     plot(rows, out / f"{args.name}.png", targets)
     data = dict(machine=C.machine(), t_end=T_END, targets=targets, rows=rows)
     print(growth_table(data) if args.growth else accuracy_table(entries_of(data, args.name)))
+    return out
 
 
 if __name__ == "__main__":

@@ -295,3 +295,36 @@ class PositiveReals(pk.groups.AbstractLieGroup):
 
     def product_change(self, change, side):
         return PositiveReals(self.value * change)
+
+
+# --- the users' scripts, run in this process ---------------------------------------
+def run_as_script(code: str, name: str) -> dict:
+    """Run `code` as a user's script (`__name__ == "__main__"`) in a fresh
+    namespace of this process, and return the namespace. In-process, it
+    shares the test process's four host devices and float64 setting (every
+    page and notebook enables float64 itself); figures are closed after."""
+    import matplotlib.pyplot as plt
+
+    plt.switch_backend("Agg")
+    namespace = {"__name__": "__main__"}
+    try:
+        exec(compile(code, name, "exec"), namespace)
+    finally:
+        plt.close("all")
+    return namespace
+
+
+def benchmark_script(path):
+    """A `benchmarks/` script imported as a module (its `main(argv)` is the command line)."""
+    import importlib.util
+    import sys
+
+    folder = str(path.parent)
+    sys.path.insert(0, folder)  # the scripts import `_common`
+    try:
+        spec = importlib.util.spec_from_file_location(f"benchmark_{path.stem}", path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(folder)
+    return module

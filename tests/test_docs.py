@@ -1,15 +1,15 @@
 """The documentation site stays true: every public name has a reference
-entry, and the pages' examples run (at a small size where a page says n)."""
+entry, and the pages' examples run (at a small size where a page says n),
+in this process as a script would."""
 
 import inspect
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
 import prkmk_jax as pk
+from helpers import run_as_script
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -90,4 +90,4 @@ def test_page_examples_run(page):
     # The pages' batch size n is for a reader's machine; the test runs a few.
     code = re.sub(r"^n = \d+", "n = 8", code, flags=re.M)
     code += "\n" + "\n".join(PAGES[page]) + "\n"
-    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT, timeout=600)
+    run_as_script(code, str(DOCS / page))
