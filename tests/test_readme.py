@@ -2,7 +2,6 @@
 
 import re
 import shutil
-import sys
 from pathlib import Path
 
 import pytest
@@ -55,11 +54,7 @@ def test_generated_tables_agree_with_the_results_and_an_edit_is_found(tmp_path):
     the tables that the benchmark scripts make from benchmarks/results;
     --check fails where a generated block was edited by hand, and a rewrite
     restores it (in a copy of the documents and results)."""
-    sys.path.insert(0, str(TABLE_WRITER.parent))
-    try:
-        import write_tables
-    finally:
-        sys.path.remove(str(TABLE_WRITER.parent))
+    write_tables = benchmark_script(TABLE_WRITER)
     assert write_tables.main(["--check"]) == 0
     shutil.copytree(ROOT / "benchmarks" / "results", tmp_path / "benchmarks" / "results")
     for document in [*write_tables.DOCUMENTS, write_tables.NOTEBOOK]:  # a copy: the writer may write
