@@ -6,6 +6,7 @@ coordinates and tableaus; methods; scenes; gradients; drivers.
 
 from . import compositions as compositions
 from . import diagnostics as diagnostics
+from . import elliptic as elliptic
 from . import exact_flows as exact_flows
 from . import groups as groups
 from . import methods as methods
@@ -56,6 +57,7 @@ from .methods import RESULTS as RESULTS
 from .methods import AbstractMethod as AbstractMethod
 from .methods import Adjoint as Adjoint
 from .methods import Composition as Composition
+from .methods import ExactFlow as ExactFlow
 from .methods import Splitting as Splitting
 from .methods import Step as Step
 from .methods import Symmetrized as Symmetrized

@@ -341,3 +341,14 @@ def _bjorck_rows(z: Packed, first_rows: tuple[int, ...], only_where_drifted: boo
                 corrected = 1.5 * q[r][c] - 0.5 * sum(q[r][k] * gram[k][c] for k in range(3))
                 rows[first + 3 * r + c] = jnp.where(correct, corrected, q[r][c]) if only_where_drifted else corrected
     return jnp.stack(rows)
+
+
+class AbstractSolvedScene(AbstractFieldOnBundle):
+    """A scene whose whole flow is known in closed form: what an `ExactFlow`
+    method needs of it."""
+
+    @abc.abstractmethod
+    def solved_flow(self, t: Array, y: BundleElement, h: Array, args: PyTree, /) -> BundleElement:
+        """The state a time h after the state y at time t, exactly (to the
+        round-off of the closed form), for any h of either sign. Raises
+        `ValueError` at trace time where `args` admit no closed form."""

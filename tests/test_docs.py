@@ -32,7 +32,7 @@ def _reference_entries() -> set[str]:
     return entries
 
 
-MODULES = [pk, pk.coordinates, pk.groups, pk.scenes, pk.diagnostics, pk.methods, pk.stage_plan, pk.tableaus, pk.compositions]
+MODULES = [pk, pk.elliptic, pk.coordinates, pk.groups, pk.scenes, pk.diagnostics, pk.methods, pk.stage_plan, pk.tableaus, pk.compositions]
 
 
 @pytest.mark.parametrize("module", MODULES, ids=lambda m: m.__name__)

@@ -10,6 +10,7 @@ from .base import AbstractMethod as AbstractMethod
 from .base import Step as Step
 from .base import compensated as compensated
 from .composition import Composition as Composition
+from .exact import ExactFlow as ExactFlow
 from .prkmk import PRKMK as PRKMK
 from .splitting import Splitting as Splitting
 from .stage_solve import StageSolve as StageSolve

@@ -4,6 +4,7 @@ from .forced_body import ForcedParameters as ForcedParameters
 from .forced_body import ForcedRigidBody as ForcedRigidBody
 from .forced_body import HarmonicTorque as HarmonicTorque
 from .forced_body import harmonic_torque as harmonic_torque
+from .free_flow import free_body_flow as free_body_flow
 from .heavy_top import HeavyTop as HeavyTop
 from .heavy_top import SphericalTop as SphericalTop
 from .heavy_top import TopParameters as TopParameters

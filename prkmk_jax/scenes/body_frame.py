@@ -134,14 +134,15 @@ def vector_pair(axis: int, first_row: int) -> tuple[tuple[int, int], ...]:
     return (((first_row + (axis + 1) % 3), (first_row + (axis + 2) % 3)),)
 
 
-def principal_moments(inertia: Any, scene: str, batched: bool = False) -> Array:
+def principal_moments(inertia: Any, scene: str, batched: bool = False, closed_form: bool = False) -> Array:
     """`inertia` as principal moments (3,), or (*batch, 3) where `batched`:
-    a split into axis terms needs the body axes to be principal (a diagonal
-    inertia)."""
+    a split into axis terms, or the closed-form flow (`closed_form`), needs
+    the body axes to be principal (a diagonal inertia)."""
     shape = jnp.shape(inertia)
     if not (shape == (3,) or (batched and len(shape) > 1 and shape[-1] == 3)):
+        what = "the closed-form flow" if closed_form else "the split into axis rotations"
         raise ValueError(
-            f"{scene}: the split into axis rotations needs the principal moments of inertia, shape (3,), got shape {shape}; "
+            f"{scene}: {what} needs the principal moments of inertia, shape (3,), got shape {shape}; "
             "for a full inertia tensor use a PRKMK method, or rotate the body frame to the principal axes."
         )
     return jnp.asarray(inertia)

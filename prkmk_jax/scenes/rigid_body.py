@@ -25,6 +25,7 @@ from jaxtyping import Array, Float
 from .. import diagnostics, exact_flows
 from .._bundles import AbstractBundle, AbstractSemidirect, BundleElement, Cartesian, Cotangent, DirectProduct
 from ..groups import SO3, SOn, hat, vee
+from ..methods.exact import ExactFlow
 from . import body_frame
 from .base import (
     AbstractScene,
@@ -35,6 +36,7 @@ from .base import (
     rotation_and_vector_state,
     rotation_matrix,
 )
+from .free_flow import free_body_flow
 
 PAPER_INERTIA = np.array([7 / 8, 5 / 8, 1 / 4])
 """Eq. (5.2), acting on the vector form of M."""
@@ -218,7 +220,7 @@ def elliptic_momentum(pi0, inertia, t) -> np.ndarray:
     return out
 
 
-class FreeRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
+class FreeRigidBody(AbstractScene, exact_flows.AbstractSplitScene, exact_flows.AbstractSolvedScene):
     """The unreduced free rigid body g' = gΩ, Π' = Π × Ω on T*SO(3), body form.
 
     `bundle` is `Cotangent(SO3)` (default) or `Semidirect(SO3, "left")`,
@@ -229,7 +231,9 @@ class FreeRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
 
     It splits (`splitting()`) into the three axis terms ½Πᵢ²/Iᵢ of its
     energy, each a rotation about a body axis (principal moments only), the
-    axis of smallest inertia outermost (`body_frame.InertiaOrderedFrame`)."""
+    axis of smallest inertia outermost (`body_frame.InertiaOrderedFrame`).
+    Its whole flow is known in closed form (`exact_flow()`, principal
+    moments only: `free_flow.free_body_flow`)."""
 
     bundle: AbstractBundle = eqx.field(default_factory=lambda: Cotangent(SO3))
     form: Literal["space", "body"] = eqx.field(default="body", static=True)
@@ -281,6 +285,17 @@ class FreeRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
         """Written out (`embedding_field`, the Euclidean peers' field in the
         benchmarks); equal to the generator's (`derived_embedding_field`)."""
         return embedding_field(t, z, inertia)
+
+    def exact_flow(self) -> ExactFlow:
+        """The method whose every step is this body's exact flow
+        (`ExactFlow`, `free_flow.free_body_flow`)."""
+        return ExactFlow(self)  # pyright: ignore[reportCallIssue]  # equinox: AbstractVars implemented by properties are not __init__ fields
+
+    def solved_flow(self, t, y, h, inertia):
+        del t  # the free body's field does not depend on time
+        moments = body_frame.principal_moments(inertia, "FreeRigidBody", closed_form=True)
+        q, pi = free_body_flow(rotation_matrix(y.base), y.fiber, moments, h)
+        return BundleElement(SO3(q), pi)
 
     def exact_flows(self, inertia):
         moments = body_frame.principal_moments(inertia, "FreeRigidBody")

@@ -1,0 +1,267 @@
+"""Jacobi's elliptic functions and Legendre's elliptic integrals of the first
+and third kinds, in JAX: jittable, vmappable, differentiable in forward and
+reverse mode, in float32 and float64.
+
+They are what the free rigid body's exact flow is written in
+(`scenes.free_flow`): its body momentum is (cn, sn, dn) of a linear
+function of time and its attitude turns by an integral of the third kind.
+The parameter is m = k² (SciPy's convention); every function takes arrays
+that broadcast against each other.
+
+* `jacobi(u, m)`: sn, cn, dn and the amplitude am(u | m) for 0 ≤ m ≤ 1, by
+  the arithmetic–geometric mean and descending Landen transformations
+  (Abramowitz & Stegun 16.4), a fixed number of levels, enough for the
+  parameter nearest 1 the dtype holds. The amplitude is continuous in u
+  (it grows by π every 2K), which the third kind's argument needs.
+* `carlson_rf`, `carlson_rd`, `carlson_rj`: Carlson's symmetric integrals by
+  duplication (Carlson, Numer. Algorithms 10, 1995; DLMF 19.36), a fixed
+  number of steps and the fifth-order series after them.
+* `ellipk(m)`, `ellipf(phi, m)`, `ellippi(n, phi, m)`: the complete and
+  incomplete integrals of the first kind and the incomplete integral of the
+  third kind (DLMF 19.2.4, 19.2.7), for any real amplitude through their
+  quasi-periodicity F(φ + jπ) = F(φ) + 2jK.
+
+Derivatives: autodiff through the iterations, except in the amplitude of
+the incomplete integrals, whose derivative is written out (1/Δ and
+1/((1 − n sin²φ)Δ), Δ = √(1 − m sin²φ)): in Carlson's form the amplitude
+enters as cos²φ, which vanishes at φ = π/2, where the chain rule would
+multiply an infinite partial derivative by zero.
+
+Outside the domain (m > 1 or m < 0, n sin²φ ≥ 1) the values are NaN, as
+`jnp.sqrt` of a negative number is; m = 1 gives the limits (sn = tanh,
+K = ∞).
+"""
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike
+
+# Levels of the arithmetic–geometric mean: it converges quadratically once
+# a and b are within a factor of 2, which from b₀ = √(1 − m) takes about
+# log₂(ln(4/b₀)) levels; 16 cover 1 − m down to the smallest float64.
+_AGM_LEVELS = 16
+# Duplication steps: once the arguments are within a small factor of each
+# other, each step divides their relative spread by 4, and the series after
+# the steps errs by about the sixth power of that spread: from a spread of 4,
+# ten steps leave 4·4⁻¹⁰ ≈ 4e-6, whose sixth power is far below float64's
+# epsilon. R_F pulls its arguments together quadratically (their ratios
+# square-root at each step); R_J's p comes down only by 4 per step towards x,
+# y and z, so R_J takes log₄ of p's ratio to them more: 16 steps keep it
+# accurate for p up to about 10⁶ times the largest of x, y, z.
+_DUPLICATIONS = 10
+_RJ_DUPLICATIONS = 16
+
+
+def _float(*xs: ArrayLike) -> tuple[Array, ...]:
+    dtype = jnp.result_type(float, *xs)
+    return tuple(jnp.asarray(x, dtype) for x in xs)
+
+
+def _sqrt(x: Array) -> Array:
+    """√x, with a finite derivative at 0 (the square roots of duplication
+    meet x = 0 at a complete integral, where the derivative of the result
+    is finite)."""
+    return jnp.sqrt(jnp.maximum(x, jnp.finfo(x.dtype).tiny))
+
+
+# --- Jacobi's functions ------------------------------------------------------------
+
+
+def jacobi(u: ArrayLike, m: ArrayLike) -> tuple[Array, Array, Array, Array]:
+    """(sn, cn, dn, am) of u for the parameter 0 ≤ m ≤ 1 (`scipy.special.ellipj`)."""
+    u, m = _float(u, m)
+    return _jacobi(u, m, 1 - m)
+
+
+def _jacobi(u: Array, m: Array, m1: Array) -> tuple[Array, Array, Array, Array]:
+    """`jacobi` with the complementary parameter m1 = 1 − m given on its
+    own, for a caller that knows it more accurately than 1 − m rounds it."""
+    u, m, m1 = jnp.broadcast_arrays(u, m, m1)
+    at_one = m1 == 0
+    m1_safe = jnp.where(at_one, 0.5, m1)
+    m_safe = jnp.where(at_one, 0.5, m)
+
+    # a, b, c of the arithmetic–geometric mean from (1, √m1, √m), with
+    # c_{j+1} = c_j²/(4 a_{j+1}) = (a_j − b_j)/2 computed without the difference.
+    def mean_level(carry, _):
+        a, b, c_squared = carry
+        a_next = (a + b) / 2
+        c_next = c_squared / (4 * a_next)
+        return (a_next, jnp.sqrt(a * b), c_next * c_next), (a_next, c_next)
+
+    start = (jnp.ones_like(u), jnp.sqrt(m1_safe), m_safe)
+    (a, _, _), (a_levels, c_levels) = jax.lax.scan(mean_level, start, length=_AGM_LEVELS)
+
+    # φ_N = 2^N a_N u, then φ_{j−1} = (φ_j + arcsin(c_j sin φ_j / a_j))/2: the
+    # scalings by powers of 2 are exact, so φ keeps u's relative precision.
+    def landen_level(phi, level):
+        a_j, c_j = level
+        return (phi + jnp.arcsin(c_j / a_j * jnp.sin(phi))) / 2, None
+
+    phi, _ = jax.lax.scan(landen_level, (2.0**_AGM_LEVELS) * a * u, (a_levels, c_levels), reverse=True)
+    sn, cn = jnp.sin(phi), jnp.cos(phi)
+    # dn² = m1 + m cn²: two terms ≥ 0, no cancellation as m → 1.
+    dn = jnp.sqrt(m1_safe + m_safe * cn * cn)
+    # m = 1: sn = tanh u, cn = dn = sech u, am = gd(u).
+    sech = 1 / jnp.cosh(jnp.where(at_one, u, 0.0))
+    sn = jnp.where(at_one, jnp.tanh(u), sn)
+    cn = jnp.where(at_one, sech, cn)
+    dn = jnp.where(at_one, sech, dn)
+    am = jnp.where(at_one, 2 * jnp.arctan(jnp.tanh(u / 2)), phi)
+    return sn, cn, dn, am
+
+
+# --- Carlson's symmetric integrals -------------------------------------------------
+
+
+def carlson_rf(x: ArrayLike, y: ArrayLike, z: ArrayLike) -> Array:
+    """R_F(x, y, z) = ½∫₀^∞ dt/√((t + x)(t + y)(t + z)), x, y, z ≥ 0, at most
+    one of them 0 (`scipy.special.elliprf`)."""
+    x, y, z = jnp.broadcast_arrays(*_float(x, y, z))
+
+    def duplication(_, xyz):
+        x, y, z = xyz
+        sx, sy, sz = _sqrt(x), _sqrt(y), _sqrt(z)
+        lam = sx * sy + sy * sz + sz * sx
+        return (x + lam) / 4, (y + lam) / 4, (z + lam) / 4
+
+    x, y, z = jax.lax.fori_loop(0, _DUPLICATIONS, duplication, (x, y, z))
+    a = (x + y + z) / 3
+    dx, dy = 1 - x / a, 1 - y / a
+    dz = -dx - dy
+    e2, e3 = dx * dy - dz * dz, dx * dy * dz
+    return jnp.asarray((1 - e2 / 10 + e3 / 14 + e2 * e2 / 24 - 3 * e2 * e3 / 44) / jnp.sqrt(a))
+
+
+def _rc_one(e: Array) -> Array:
+    """R_C(1, 1 + e) = arctan(√e)/√e (e > 0), artanh(√−e)/√−e (−1 < e < 0),
+    its series near e = 0 (double `where`: finite derivatives there)."""
+    small = jnp.abs(e) < 1e-3
+    safe = jnp.where(small, 1.0, e)
+    root = jnp.sqrt(jnp.abs(safe))
+    far = jnp.where(safe > 0, jnp.arctan(root), jnp.arctanh(root)) / root
+    near = 1 - e / 3 + e**2 / 5 - e**3 / 7 + e**4 / 9 - e**5 / 11
+    return jnp.where(small, near, far)
+
+
+def carlson_rj(x: ArrayLike, y: ArrayLike, z: ArrayLike, p: ArrayLike) -> Array:
+    """R_J(x, y, z, p) = 3/2 ∫₀^∞ dt/((t + p)√((t + x)(t + y)(t + z))),
+    x, y, z ≥ 0 (at most one 0), p > 0 and at most about 10⁶·max(x, y, z)
+    (`scipy.special.elliprj`)."""
+    x, y, z, p = jnp.broadcast_arrays(*_float(x, y, z, p))
+    delta = (p - x) * (p - y) * (p - z)
+
+    def duplication(j, carry):
+        x, y, z, p, total = carry
+        sx, sy, sz, sp = _sqrt(x), _sqrt(y), _sqrt(z), _sqrt(p)
+        lam = sx * sy + sy * sz + sz * sx
+        d = (sp + sx) * (sp + sy) * (sp + sz)
+        quarter = jnp.asarray(0.25, x.dtype) ** j
+        e = delta * quarter**3 / (d * d)
+        total = total + quarter * _rc_one(e) / d
+        return (x + lam) / 4, (y + lam) / 4, (z + lam) / 4, (p + lam) / 4, total
+
+    x, y, z, p, total = jax.lax.fori_loop(0, _RJ_DUPLICATIONS, duplication, (x, y, z, p, jnp.zeros_like(x)))
+    a = (x + y + z + 2 * p) / 5
+    dx, dy, dz = 1 - x / a, 1 - y / a, 1 - z / a
+    dp = -(dx + dy + dz) / 2
+    xyz = dx * dy * dz
+    e2 = dx * dy + dx * dz + dy * dz - 3 * dp * dp
+    e3 = xyz + 2 * e2 * dp + 4 * dp**3
+    e4 = (2 * xyz + e2 * dp + 3 * dp**3) * dp
+    e5 = xyz * dp * dp
+    series = 1 - 3 * e2 / 14 + e3 / 6 + 9 * e2 * e2 / 88 - 3 * e4 / 22 - 9 * e2 * e3 / 52 + 3 * e5 / 26
+    return series / (4.0**_RJ_DUPLICATIONS * a * jnp.sqrt(a)) + 6 * total
+
+
+def carlson_rd(x: ArrayLike, y: ArrayLike, z: ArrayLike) -> Array:
+    """R_D(x, y, z) = R_J(x, y, z, z), z > 0 (`scipy.special.elliprd`)."""
+    return carlson_rj(x, y, z, z)
+
+
+# --- Legendre's integrals ----------------------------------------------------------
+
+
+def ellipk(m: ArrayLike) -> Array:
+    """K(m) = F(π/2 | m), m ≤ 1 (`scipy.special.ellipk`)."""
+    (m,) = _float(m)
+    return _ellipk(m, 1 - m)
+
+
+def _ellipk(m: Array, m1: Array) -> Array:
+    del m
+    return carlson_rf(jnp.zeros_like(m1), m1, jnp.ones_like(m1))
+
+
+def _quarter_turns(phi: Array) -> tuple[Array, Array, Array, Array]:
+    """φ = jπ + φ_r with |φ_r| ≤ π/2: (j, sin φ_r, cos² φ_r, sin² φ_r)."""
+    j = jnp.round(phi / jnp.pi)
+    reduced = phi - j * jnp.pi
+    s = jnp.sin(reduced)
+    c = jnp.cos(reduced)
+    return j, s, c * c, s * s
+
+
+def ellipf(phi: ArrayLike, m: ArrayLike) -> Array:
+    """F(φ | m) = ∫₀^φ dθ/√(1 − m sin²θ), any real φ, m < 1
+    (`scipy.special.ellipkinc`)."""
+    phi, m = jnp.broadcast_arrays(*_float(phi, m))
+    return _ellipf(phi, m, 1 - m)
+
+
+@jax.custom_jvp
+def _ellipf(phi: Array, m: Array, m1: Array) -> Array:
+    return _ellipf_value(phi, m, m1)
+
+
+def _ellipf_value(phi, m, m1):
+    j, s, c2, s2 = _quarter_turns(phi)
+    # 1 − m sin²φ as cos²φ + m1 sin²φ: no cancellation as m → 1.
+    reduced = s * carlson_rf(c2, c2 + m1 * s2, jnp.ones_like(phi))
+    return jnp.where(j == 0, reduced, reduced + 2 * j * _ellipk(m, m1))
+
+
+@_ellipf.defjvp
+def _ellipf_jvp(primals, tangents):
+    phi, m, m1 = primals
+    d_phi, d_m, d_m1 = tangents
+    s2 = jnp.sin(phi) ** 2
+    value, d_params = jax.jvp(lambda m, m1: _ellipf_value(jax.lax.stop_gradient(phi), m, m1), (m, m1), (d_m, d_m1))
+    return value, d_params + d_phi / jnp.sqrt(jnp.cos(phi) ** 2 + m1 * s2)
+
+
+def ellippi(n: ArrayLike, phi: ArrayLike, m: ArrayLike) -> Array:
+    """Π(n; φ | m) = ∫₀^φ dθ/((1 − n sin²θ)√(1 − m sin²θ)), any real φ,
+    m < 1, n < 1 (SciPy has no incomplete third kind; with Carlson's forms,
+    DLMF 19.25.14)."""
+    n, phi, m = jnp.broadcast_arrays(*_float(n, phi, m))
+    return _ellippi(n, phi, m, 1 - m)
+
+
+@jax.custom_jvp
+def _ellippi(n: Array, phi: Array, m: Array, m1: Array) -> Array:
+    return _ellippi_value(n, phi, m, m1)
+
+
+def _ellippi_reduced(n, s, c2, s2, m1):
+    delta2 = c2 + m1 * s2
+    ones = jnp.ones_like(s)
+    return s * carlson_rf(c2, delta2, ones) + n / 3 * s * s2 * carlson_rj(c2, delta2, ones, 1 - n * s2)
+
+
+def _ellippi_value(n, phi, m, m1):
+    j, s, c2, s2 = _quarter_turns(phi)
+    reduced = _ellippi_reduced(n, s, c2, s2, m1)
+    zeros, ones = jnp.zeros_like(s), jnp.ones_like(s)
+    complete = _ellippi_reduced(n, ones, zeros, ones, m1)
+    return jnp.where(j == 0, reduced, reduced + 2 * j * complete)
+
+
+@_ellippi.defjvp
+def _ellippi_jvp(primals, tangents):
+    n, phi, m, m1 = primals
+    d_n, d_phi, d_m, d_m1 = tangents
+    s2 = jnp.sin(phi) ** 2
+    frozen = jax.lax.stop_gradient(phi)
+    value, d_params = jax.jvp(lambda n, m, m1: _ellippi_value(n, frozen, m, m1), (n, m, m1), (d_n, d_m, d_m1))
+    return value, d_params + d_phi / ((1 - n * s2) * jnp.sqrt(jnp.cos(phi) ** 2 + m1 * s2))

@@ -1,0 +1,153 @@
+"""The free rigid body's exact flow (`FreeRigidBody().exact_flow()`,
+`scenes.free_flow`): against SciPy's DOP853 on the embedding, against the
+equations themselves (its derivative in h is the field at every h) and the
+group law in h; its invariants; as a method in every driver, with gradients
+against finite differences."""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import prkmk_jax as pk
+from helpers import INERTIA, central_differences, max_leaf_difference
+from prkmk_jax.scenes import FreeRigidBody, random_rotation
+from prkmk_jax.scenes.free_flow import free_body_flow
+
+SCENE = FreeRigidBody()
+METHOD = SCENE.exact_flow()
+
+
+def _state(seed, momentum):
+    return pk.BundleElement(pk.SO3(jnp.asarray(random_rotation(seed))), jnp.asarray(momentum, float))
+
+
+def _separatrix_momentum(inertia, offset):
+    """A momentum with |Π|² = 2H·I_mid·(1 + offset): Π_hi² follows from Π_lo = 0.3, Π_mid = 0.9."""
+    lo, mid, hi = np.sort(inertia)
+    p_lo, p_mid = 0.3, 0.9
+    p_hi = np.sqrt(p_lo**2 * (mid / lo - 1) / (1 - mid / hi) * (1 + offset))
+    return np.array([p_lo, p_mid, p_hi])[np.argsort(np.argsort(inertia))]
+
+
+_RNG = np.random.default_rng(62)
+CASES = {  # name: (inertia, momentum)
+    **{f"random {k}": (_RNG.uniform(0.2, 2.0, 3), _RNG.normal(size=3)) for k in range(4)},
+    "two equal moments (1 = 2)": (np.array([1.0, 1.0, 0.5]), np.array([0.3, 0.4, 0.9])),
+    "two equal moments (2 = 3)": (np.array([0.5, 1.0, 1.0]), np.array([0.3, 0.4, 0.9])),
+    "a sphere": (np.array([0.7, 0.7, 0.7]), np.array([0.3, 0.4, 0.9])),
+    "near-symmetric (1e-7)": (np.array([0.5, 1.0, 1.0 + 1e-7]), np.array([0.3, 0.4, 0.9])),
+    "steady about the largest axis": (np.array([0.5, 0.75, 1.0]), np.array([0.0, 0.0, -0.9])),
+    "steady about the middle axis": (np.array([0.5, 0.75, 1.0]), np.array([0.0, 0.9, 0.0])),
+    "a zero component": (np.array([0.5, 0.75, 1.0]), np.array([0.0, 0.5, 0.9])),
+    "near the separatrix, inside": (np.array([0.5, 0.75, 1.0]), _separatrix_momentum(np.array([0.5, 0.75, 1.0]), 1e-6)),
+    "near the separatrix, outside": (np.array([1.0, 0.75, 0.5]), _separatrix_momentum(np.array([1.0, 0.75, 0.5]), -1e-6)),
+}
+
+
+@jax.jit
+def _flows(q, pi, inertia, h):
+    return jax.vmap(free_body_flow, (0, 0, 0, None))(q, pi, inertia, h)
+
+
+def _batch():
+    q = np.stack([random_rotation(k) for k in range(len(CASES))])
+    inertia, pi = (np.stack(x) for x in zip(*CASES.values()))
+    return q, pi, inertia
+
+
+def test_against_dop853():
+    """T = 10 for every case (T = 100 for the first), relative to |Π|."""
+    q, pi, inertia = _batch()
+    q_end, pi_end = _flows(q, pi, inertia, 10.0)
+    q_far, pi_far = _flows(q, pi, inertia, 100.0)
+    for k, name in enumerate(CASES):
+        y0 = pk.BundleElement(pk.SO3(jnp.asarray(q[k])), jnp.asarray(pi[k]))
+        times = [10.0, 100.0] if k == 0 else [10.0]
+        reference = SCENE.reference_solution(y0, times, jnp.asarray(inertia[k]))
+        scale = np.linalg.norm(pi[k])
+        np.testing.assert_allclose(q_end[k].ravel(), reference[0, :9], rtol=0, atol=1e-12, err_msg=name)
+        np.testing.assert_allclose(pi_end[k], reference[0, 9:], rtol=0, atol=1e-12 * scale, err_msg=name)
+        if k == 0:
+            np.testing.assert_allclose(q_far[k].ravel(), reference[1, :9], rtol=0, atol=1e-11, err_msg=name)
+            np.testing.assert_allclose(pi_far[k], reference[1, 9:], rtol=0, atol=1e-11 * scale, err_msg=name)
+
+
+def test_solves_the_equations_and_composes():
+    """d/dh of the flow at h is (QΩ̂, Π × Ω) at the state it reached, and
+    φ_a ∘ φ_b = φ_{a+b} (a, b of both signs); |Π|, the energy, QΠ and QᵀQ
+    stay to round-off."""
+    q, pi, inertia = _batch()
+
+    @jax.jit
+    def residuals(h):
+        (q_h, pi_h), (dq, dpi) = jax.jvp(lambda h: _flows(q, pi, inertia, h), (h,), (jnp.ones_like(h),))
+        omega = pi_h / inertia
+        field_q = q_h @ pk.hat(omega)
+        field_pi = jnp.cross(pi_h, omega)
+        return jnp.max(jnp.abs(dq - field_q)), jnp.max(jnp.abs(dpi - field_pi)), q_h, pi_h
+
+    for h in (0.3, 7.0, -4.0):
+        dq_error, dpi_error, q_h, pi_h = residuals(jnp.asarray(h))
+        assert dq_error < 1e-12 and dpi_error < 1e-12, (h, dq_error, dpi_error)
+        np.testing.assert_allclose(np.linalg.norm(pi_h, axis=-1), np.linalg.norm(pi, axis=-1), rtol=1e-14)
+        np.testing.assert_allclose(np.sum(pi_h**2 / inertia, -1), np.sum(pi**2 / inertia, -1), rtol=1e-14)
+        np.testing.assert_allclose(np.einsum("bij,bj->bi", q_h, pi_h), np.einsum("bij,bj->bi", q, pi), atol=1e-14)
+        np.testing.assert_allclose(np.swapaxes(q_h, -1, -2) @ q_h, np.broadcast_to(np.eye(3), q.shape), atol=1e-14)
+    for a, b in ((2.5, 4.0), (6.0, -9.0)):
+        q_a, pi_a = _flows(q, pi, inertia, a)
+        q_ab, pi_ab = _flows(q_a, pi_a, inertia, b)
+        q_sum, pi_sum = _flows(q, pi, inertia, a + b)
+        np.testing.assert_allclose(q_ab, q_sum, atol=2e-14)
+        np.testing.assert_allclose(pi_ab, pi_sum, atol=2e-14)
+
+
+def test_a_method_in_every_driver():
+    """One step of 10 equals 100 steps of 0.1 and diffeqsolve's steps; a step
+    back undoes a step; the method is symmetric and undoes itself."""
+    y0, inertia = _state(0, [0.25, 0.625, 0.875]), jnp.asarray(INERTIA)
+    one = pk.integrate(METHOD, SCENE, y0, 0.0, 10.0, 1, inertia).ys
+    many = pk.integrate(METHOD, SCENE, y0, 0.0, 0.1, 100, inertia).ys
+    assert max_leaf_difference(jax.tree.map(lambda a: a[-1], one), jax.tree.map(lambda a: a[-1], many)) < 2e-14
+    sol = diffrax.diffeqsolve(pk.PRKMKTerm(SCENE), pk.PRKMKSolver(METHOD), t0=0.0, t1=10.0, dt0=2.5, y0=y0, args=inertia)
+    assert max_leaf_difference(jax.tree.map(lambda a: a[-1], sol.ys), jax.tree.map(lambda a: a[-1], one)) < 2e-14
+    assert METHOD.is_symmetric and METHOD.undoing_method() is METHOD
+    assert pk.symmetry_defect(METHOD, SCENE, y0, 3.0, inertia) < 1e-14
+
+
+def test_gradients_against_finite_differences():
+    """With respect to the initial momentum and the inertia, through
+    ReversibleGradient (the step undone by itself, then differentiated)."""
+    q0 = jnp.asarray(random_rotation(1))
+    weights = jnp.arange(12.0)
+
+    def loss(params, gradient=pk.ReversibleGradient()):
+        momentum, inertia = params[:3], params[3:]
+        ys = pk.integrate(METHOD, SCENE, pk.BundleElement(pk.SO3(q0), momentum), 0.0, 0.5, 20, inertia, gradient=gradient).ys
+        return jnp.concatenate([ys.base.matrix[-1].ravel(), ys.fiber[-1]]) @ weights
+
+    params = jnp.array([0.3, -0.5, 0.8, 0.9, 0.6, 0.3])
+    gradient = jax.jit(jax.grad(loss))(params)
+    assert np.all(np.isfinite(gradient))
+    np.testing.assert_allclose(gradient, central_differences(jax.jit(loss), params, 1e-6), rtol=1e-6)
+
+
+def test_float32():
+    """A float32 step stays in float32, near the float64 one."""
+    y0 = _state(0, [0.25, 0.625, 0.875])
+    low = jax.tree.map(lambda a: a.astype(jnp.float32), y0)
+    step64 = METHOD.step(SCENE, 0.0, y0, 3.0, jnp.asarray(INERTIA)).y
+    step32 = METHOD.step(SCENE, jnp.float32(0.0), low, jnp.float32(3.0), jnp.asarray(INERTIA, jnp.float32)).y
+    assert step32.fiber.dtype == jnp.float32 and step32.base.matrix.dtype == jnp.float32
+    assert max_leaf_difference(step32, step64) < 2e-6
+
+
+def test_refusals():
+    y0, inertia = _state(0, [0.25, 0.625, 0.875]), jnp.asarray(INERTIA)
+    with pytest.raises(ValueError, match="closed-form flow needs the principal moments"):
+        pk.integrate(METHOD, SCENE, y0, 0.0, 0.1, 2, jnp.diag(inertia))
+    with pytest.raises(ValueError, match="integrates the scene it was built for"):
+        pk.integrate(METHOD, lambda t, y, a: (y.fiber / a, jnp.zeros(3)), y0, 0.0, 0.1, 2, inertia)
+    with pytest.raises(TypeError, match="closed form"):
+        pk.ExactFlow(pk.scenes.HeavyTop())  # pyright: ignore[reportCallIssue]
