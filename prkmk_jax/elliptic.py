@@ -252,8 +252,10 @@ def _ellippi_reduced(n, s, c2, s2, m1):
 def _ellippi_value(n, phi, m, m1):
     j, s, c2, s2 = _quarter_turns(phi)
     reduced = _ellippi_reduced(n, s, c2, s2, m1)
-    zeros, ones = jnp.zeros_like(s), jnp.ones_like(s)
-    complete = _ellippi_reduced(n, ones, zeros, ones, m1)
+    # The complete integral at the parameters' shape: amplitudes stacked on
+    # a leading axis (several ends of one interval) share it.
+    ones = jnp.ones(jnp.broadcast_shapes(jnp.shape(n), jnp.shape(m1)), reduced.dtype)
+    complete = _ellippi_reduced(n, ones, 0 * ones, ones, m1)
     return jnp.where(j == 0, reduced, reduced + 2 * j * complete)
 
 
