@@ -29,7 +29,7 @@ not scale them; a `Splitting` step there moves the state's change instead
 import abc
 import functools
 from collections.abc import Callable
-from typing import ClassVar, NamedTuple
+from typing import ClassVar, Literal, NamedTuple
 
 import equinox as eqx
 import jax
@@ -42,6 +42,10 @@ from ._fields import AbstractFieldOnBundle
 from .coordinates import AbstractCoordinates
 from .groups._util import drifted, is_low_precision
 from .groups.trig import computed_once
+
+FreePart = Literal["axes", "exact"]
+"""How a split rigid body's kinetic energy enters a splitting: its three axis
+terms, each a rotation, or the free body's whole flow in closed form."""
 
 Packed = Float[Array, "d *batch"]
 """A state packed with its components first: one row per entry (for T*SO(3):
@@ -289,11 +293,14 @@ class AbstractSplitScene(AbstractFieldOnBundle):
     onto SO(3) after each step in low precision (`renormalized_rotations`)."""
 
     @abc.abstractmethod
-    def exact_flows(self, args: PyTree, /) -> tuple[AbstractExactFlow, ...]:
+    def exact_flows(self, args: PyTree, /, free_part: FreePart = "axes") -> tuple[AbstractExactFlow, ...]:
         """The parts, outermost first: `Splitting` runs them as the palindrome
-        f₁(h/2) … f_{k−1}(h/2) f_k(h) f_{k−1}(h/2) … f₁(h/2). Raises
-        `ValueError` at trace time where `args` admit no such split (say, an
-        inertia tensor that is not diagonal)."""
+        f₁(h/2) … f_{k−1}(h/2) f_k(h) f_{k−1}(h/2) … f₁(h/2). `free_part`
+        says how a rigid body's kinetic energy enters: as its three axis
+        terms ("axes"), or as one part, the free body's flow in closed form
+        ("exact"). Raises `ValueError` at trace time where `args` admit no
+        such split (say, an inertia tensor that is not diagonal) or the
+        scene has no such part."""
 
     @abc.abstractmethod
     def pack(self, y: BundleElement, args: PyTree, /) -> Packed:

@@ -35,6 +35,8 @@ TOP = HeavyTop()
 TOP_ON_G_X_G_METHOD = HeavyTop(pk.DirectProduct(pk.SO3)).method(pk.stormer_verlet)
 FREE_BODY = FreeRigidBody()
 SYMMETRIC_SO4 = SymmetricRigidBody(pk.Cartesian(pk.SOn))
+SYMMETRIC = SymmetricRigidBody()
+SYMMETRIC_STATE = pk.BundleElement(pk.SO3(jnp.eye(3)), pk.SO3(jnp.eye(3)))
 SO4_STATE = pk.BundleElement(pk.SOn(jnp.eye(4)), pk.SOn(jnp.eye(4)))
 SPACE_FORM_METHOD = pk.PRKMK(COTANGENT, tableau=pk.stormer_verlet)  # form="space" by default
 
@@ -199,6 +201,20 @@ STATIC = {
     ),
     "splitting of a scene that does not split": (lambda: SphericalTop().splitting(), TypeError, "splits into exactly solvable parts"),
     "splitting, compensated_sum not a bool": (lambda: pk.Splitting(FREE_BODY, compensated_sum=1), TypeError, "compensated_sum must be"),
+    "splitting, an unknown free part": (lambda: pk.Splitting(FREE_BODY, free_part="whole"), ValueError, "free_part must be"),
+    "splitting of the symmetric body, exact free part": (
+        lambda: _integrate(method=SYMMETRIC.splitting(free_part="exact"), field=SYMMETRIC, args=ARGS, y0=SYMMETRIC_STATE),
+        ValueError,
+        "axis terms only",
+    ),
+    # exact flows
+    "exact flow, an inertia tensor": (
+        lambda: _integrate(method=FREE_BODY.exact_flow(), field=FREE_BODY, args=jnp.diag(ARGS)),
+        ValueError,
+        "closed-form flow needs the principal moments",
+    ),
+    "exact flow of another field": (lambda: _integrate(method=FREE_BODY.exact_flow()), ValueError, "integrates the scene it was built for"),
+    "exact flow of a scene without one": (lambda: pk.ExactFlow(TOP), TypeError, "closed form"),  # pyright: ignore[reportCallIssue]
     "splitting of the symmetric body on SO(4)": (
         lambda: _integrate(SO4_STATE, method=SYMMETRIC_SO4.splitting(), field=SYMMETRIC_SO4, args=jnp.ones(4)),
         ValueError,

@@ -8,7 +8,6 @@ import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 import prkmk_jax as pk
 from helpers import INERTIA, central_differences, max_leaf_difference
@@ -165,13 +164,3 @@ def test_float32():
     step32 = METHOD.step(SCENE, jnp.float32(0.0), low, jnp.float32(3.0), jnp.asarray(INERTIA, jnp.float32)).y
     assert step32.fiber.dtype == jnp.float32 and step32.base.matrix.dtype == jnp.float32
     assert max_leaf_difference(step32, step64) < 2e-6
-
-
-def test_refusals():
-    y0, inertia = _state(0, [0.25, 0.625, 0.875]), jnp.asarray(INERTIA)
-    with pytest.raises(ValueError, match="closed-form flow needs the principal moments"):
-        pk.integrate(METHOD, SCENE, y0, 0.0, 0.1, 2, jnp.diag(inertia))
-    with pytest.raises(ValueError, match="integrates the scene it was built for"):
-        pk.integrate(METHOD, lambda t, y, a: (y.fiber / a, jnp.zeros(3)), y0, 0.0, 0.1, 2, inertia)
-    with pytest.raises(TypeError, match="closed form"):
-        pk.ExactFlow(pk.scenes.HeavyTop())  # pyright: ignore[reportCallIssue]

@@ -66,10 +66,13 @@ def test_sincos_against_numpy_and_its_derivative(dtype):
     np.testing.assert_allclose(vmapped, (np.sin(exact), np.cos(exact)), rtol=0, atol=4 * eps)
 
 
-@pytest.mark.parametrize("name", ["free body", "heavy top", "forced body", "symmetric body"])
-def test_the_parts_add_up_to_the_field(name):
+@pytest.mark.parametrize(
+    "name, free_part", [(name, "axes") for name in ("free body", "heavy top", "forced body", "symmetric body")] + [("heavy top", "exact")]
+)
+def test_the_parts_add_up_to_the_field(name, free_part):
     """Σ_parts d/dh φ_part(h)(z) at h = 0, through each part's flow, equals
-    the scene's embedding field: the split is of the scene's own equations."""
+    the scene's embedding field: the split is of the scene's own equations
+    (with the kinetic energy in axis terms, or whole)."""
     scene, y0, args = CASES[name]
     z = scene.pack(y0, args)
     t = jnp.asarray(0.7)
@@ -78,7 +81,7 @@ def test_the_parts_add_up_to_the_field(name):
     def moved(part, h):
         return scene.to_embedding(scene.unpack(part.flow(pk.Exp(), t, z, h, args), y0, args))
 
-    for part in scene.exact_flows(args):
+    for part in scene.exact_flows(args, free_part=free_part):
         _, velocity = jax.jvp(lambda h, part=part: moved(part, h), (jnp.asarray(0.0),), (jnp.asarray(1.0),))
         total = total + velocity
     np.testing.assert_allclose(total, scene.embedding_field(t, scene.to_embedding(y0), args), atol=1e-14)
@@ -229,10 +232,11 @@ def test_a_batch_in_the_state_and_vmap_give_the_single_runs(name):
         assert max_leaf_difference(jax.tree.map(lambda a: a[k], mapped), single) < 1e-13
 
 
-REVERSE_VARIANTS = {  # name: (coefficients, coordinates)
-    "Strang": (None, pk.Exp()),
-    "Cayley": (None, pk.Cayley()),
-    "triple jump": (pk.yoshida_triple_jump, pk.Exp()),
+REVERSE_VARIANTS = {  # name: (coefficients, coordinates, free part)
+    "Strang": (None, pk.Exp(), "axes"),
+    "Cayley": (None, pk.Cayley(), "axes"),
+    "triple jump": (pk.yoshida_triple_jump, pk.Exp(), "axes"),
+    "exact free part": (None, pk.Exp(), "exact"),
 }
 
 
@@ -240,14 +244,14 @@ REVERSE_VARIANTS = {  # name: (coefficients, coordinates)
     "name, variant, batch",
     [(name, "Strang", 3) for name in CASES]
     # The coordinates and the composition do not depend on the scene: one each.
-    + [("heavy top", "Cayley", 3), ("free body", "triple jump", 1)],
+    + [("heavy top", "Cayley", 3), ("free body", "triple jump", 1), ("forced body", "exact free part", 3)],
 )
 def test_reverse_step_undoes_the_step_and_gives_its_vjp(name, variant, batch):
     """`Splitting.reverse_step` from a step's end: the step's start (to
     round-off) and `jax.vjp` of the step there, for a random cotangent."""
     scene, y0, args = CASES[name]
-    coefficients, coordinates = REVERSE_VARIANTS[variant]
-    method = pk.Splitting(scene, coefficients, coordinates)
+    coefficients, coordinates, free_part = REVERSE_VARIANTS[variant]
+    method = pk.Splitting(scene, coefficients, coordinates, free_part=free_part)
     ys = _batch_of(y0, batch, seed=20)
     t, dt = 0.3, 0.05
 

@@ -38,7 +38,7 @@ from .._exact_sums import two_sum
 from .._fields import Time, VectorField
 from ..compositions import CompositionCoefficients
 from ..coordinates import AbstractCoordinates, Exp
-from ..exact_flows import AbstractSplitScene, renormalized_rotations
+from ..exact_flows import AbstractSplitScene, FreePart, renormalized_rotations
 from ..groups._util import LOW_PRECISION_EPS, is_low_precision
 from ..groups.trig import computed_once
 from .base import RESULTS, AbstractMethod, Step, check_parts, differentiated_as, flag_nonfinite, fractions_and_starts
@@ -83,6 +83,12 @@ class Splitting(AbstractMethod):
       run's in the last bits).
     - `coordinates`: `Exp()` (exact flows, default), `Cayley()` or any
       `AbstractCoordinates` (each rotation turned as its `planar_rotation` says).
+    - `free_part`: how a rigid body's kinetic energy is split: "axes"
+      (default), its three axis terms, each a rotation about a body axis;
+      "exact", one part, the free body's flow in closed form (Jacobi's
+      elliptic functions, `scenes.free_body_flow`), so that only the
+      potential or the torque is split off: fewer, costlier sub-steps with a
+      smaller error constant (the heavy top, the forced body).
     - `compensated_sum`: in low precision (float32), True (default) runs
       the sub-steps on the step's change and adds it to the state once,
       carrying what that sum loses into the next step (`compensated`), so
@@ -102,8 +108,11 @@ class Splitting(AbstractMethod):
     coefficients: CompositionCoefficients | None = eqx.field(static=True, default=None)
     coordinates: AbstractCoordinates = Exp()
     compensated_sum: bool = eqx.field(static=True, default=True)
+    free_part: FreePart = eqx.field(static=True, default="axes")
 
     def __check_init__(self):
+        if self.free_part not in ("axes", "exact"):
+            raise ValueError(f"free_part must be 'axes' or 'exact', got {self.free_part!r}.")
         if not isinstance(self.compensated_sum, bool):
             raise TypeError(f"compensated_sum must be True or False, got {self.compensated_sum!r}.")
         if not isinstance(self.scene, AbstractSplitScene):
@@ -156,7 +165,7 @@ class Splitting(AbstractMethod):
         del carried  # explicit: nothing to start from
         dtype = jnp.result_type(*jax.tree.leaves(y))
         t, dt = jnp.asarray(t, dtype), jnp.asarray(dt, dtype)
-        flows = self.scene.exact_flows(args)
+        flows = self.scene.exact_flows(args, free_part=self.free_part)
         z = self.scene.pack(y, args)
         plan = self._sub_steps(len(flows))
         # At most one Strang step's sub-steps (2n − 1 for n parts) are left
@@ -258,7 +267,7 @@ class Splitting(AbstractMethod):
         if is_low_precision(dtype):
             raise ValueError(f"reverse_step needs a dtype with machine epsilon at most {LOW_PRECISION_EPS:g}, got {dtype}.")
         t, dt = jnp.asarray(t, dtype), jnp.asarray(dt, dtype)
-        plan = self._sub_steps(len(self.scene.exact_flows(args)))
+        plan = self._sub_steps(len(self.scene.exact_flows(args, free_part=self.free_part)))
         z = self.scene.pack(y_next, args)
         _, pull_unpack = jax.vjp(lambda z: self.scene.unpack(z, y_next, args), z)
         (cotangent_z,) = pull_unpack(cotangent)
@@ -268,10 +277,10 @@ class Splitting(AbstractMethod):
 
             def coefficients(z, args_dynamic, part=part, start=start, step=step):
                 args = eqx.combine(args_dynamic, args_static)
-                flow = self.scene.exact_flows(args)[part]
+                flow = self.scene.exact_flows(args, free_part=self.free_part)[part]
                 return flow.coefficients(self.coordinates, t + start * dt, z, step * dt, args)
 
-            flow = self.scene.exact_flows(args)[part]
+            flow = self.scene.exact_flows(args, free_part=self.free_part)[part]
             if flow.reads_unmoved_rows_only:
                 # The coefficients and their derivatives are the same at the
                 # sub-step's end as at its start: computed once.

@@ -20,6 +20,7 @@ from .._bundles import AbstractBundle, AlgebraPair, BundleElement, Cotangent
 from .._fields import AbstractFieldOnBundle, Time
 from ..compositions import CompositionCoefficients
 from ..coordinates import AbstractCoordinates, Exp
+from ..exact_flows import FreePart
 from ..groups import SO3, AbstractRotationGroup
 from ..methods.prkmk import PRKMK
 from ..methods.splitting import Splitting
@@ -103,13 +104,19 @@ class AbstractScene(AbstractFieldOnBundle):
         (exp coordinates unless given; `options` go to `PRKMK`)."""
         return PRKMK(self.bundle, Exp() if coordinates is None else coordinates, tableau=tableau, form=self.form, **options)
 
-    def splitting(self, coefficients: CompositionCoefficients | None = None, coordinates: AbstractCoordinates | None = None) -> Splitting:
+    def splitting(
+        self,
+        coefficients: CompositionCoefficients | None = None,
+        coordinates: AbstractCoordinates | None = None,
+        free_part: FreePart = "axes",
+    ) -> Splitting:
         """The exact-flow splitting of this scene (`Splitting`), of order 2 or,
-        with `coefficients`, of their order; `TypeError` for a scene that
+        with `coefficients`, of their order, its kinetic energy split into
+        axis terms or taken whole (`free_part`); `TypeError` for a scene that
         does not split."""
         coordinates = Exp() if coordinates is None else coordinates
         # Splitting checks the scene's type itself, with its own message.
-        return Splitting(scene=self, coefficients=coefficients, coordinates=coordinates)  # pyright: ignore[reportCallIssue, reportArgumentType]  # equinox: AbstractVars implemented by properties are not __init__ fields
+        return Splitting(scene=self, coefficients=coefficients, coordinates=coordinates, free_part=free_part)  # pyright: ignore[reportCallIssue, reportArgumentType]  # equinox: AbstractVars implemented by properties are not __init__ fields
 
 
 @functools.cache

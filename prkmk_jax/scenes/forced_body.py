@@ -21,6 +21,7 @@ from .._bundles import AbstractBundle, BundleElement
 from .._fields import Time
 from . import body_frame
 from .base import AbstractBodyOnTStarSO3, checked_moments, checked_parameters, rotation_matrix
+from .free_flow import FreeBodyFlow
 
 
 class HarmonicTorque(eqx.Module):
@@ -94,7 +95,7 @@ class ForcedRigidBody(AbstractBodyOnTStarSO3, exact_flows.AbstractSplitScene):
             "orthogonality": diagnostics.orthogonality_defect(rotation_matrix(y.base)),
         }
 
-    def exact_flows(self, args: ForcedParameters):
+    def exact_flows(self, args: ForcedParameters, free_part="axes"):
         moments = body_frame.principal_moments(args.inertia, "ForcedRigidBody", batched=True)
         frame = body_frame.InertiaOrderedFrame.of(moments)
 
@@ -103,6 +104,8 @@ class ForcedRigidBody(AbstractBodyOnTStarSO3, exact_flows.AbstractSplitScene):
             return jnp.moveaxis(frame.vector(body), -1, 0)
 
         kick = exact_flows.MomentumKick((9, 10, 11), torque)
+        if free_part == "exact":
+            return (kick, FreeBodyFlow(frame, moments))
         return (kick,) + body_frame.axis_rotations(frame, moments, momentum_row=9, matrix_rows=(0,))
 
     def pack(self, y, args: ForcedParameters):

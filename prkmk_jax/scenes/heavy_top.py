@@ -39,6 +39,7 @@ from .base import (
     rotation_and_vector_state,
     rotation_matrix,
 )
+from .free_flow import FreeBodyFlow
 
 
 class TopParameters(eqx.Module):
@@ -142,10 +143,12 @@ class HeavyTop(AbstractScene, exact_flows.AbstractSplitScene):
     def from_embedding(self, z: Float[Array, "*batch 12"]) -> BundleElement:
         return rotation_and_vector_state(z)
 
-    def exact_flows(self, args: TopParameters):
+    def exact_flows(self, args: TopParameters, free_part="axes"):
         moments = body_frame.principal_moments(args.inertia, "HeavyTop", batched=True)
         frame = body_frame.InertiaOrderedFrame.of(moments)
         kick = exact_flows.MomentumKick((9, 10, 11), gravity_torque(frame, jnp.asarray(args.lever)))
+        if free_part == "exact":
+            return (kick, FreeBodyFlow(frame, moments))
         return (kick,) + body_frame.axis_rotations(frame, moments, momentum_row=9, matrix_rows=(0,))
 
     def pack(self, y, args: TopParameters):

@@ -36,7 +36,7 @@ from .base import (
     rotation_and_vector_state,
     rotation_matrix,
 )
-from .free_flow import free_body_flow
+from .free_flow import FreeBodyFlow, free_body_flow
 
 PAPER_INERTIA = np.array([7 / 8, 5 / 8, 1 / 4])
 """Eq. (5.2), acting on the vector form of M."""
@@ -297,8 +297,10 @@ class FreeRigidBody(AbstractScene, exact_flows.AbstractSplitScene, exact_flows.A
         q, pi = free_body_flow(rotation_matrix(y.base), y.fiber, moments, h)
         return BundleElement(SO3(q), pi)
 
-    def exact_flows(self, inertia):
+    def exact_flows(self, inertia, free_part="axes"):
         moments = body_frame.principal_moments(inertia, "FreeRigidBody")
+        if free_part == "exact":
+            return (FreeBodyFlow(body_frame.InertiaOrderedFrame.of(moments), moments),)
         return body_frame.axis_rotations(body_frame.InertiaOrderedFrame.of(moments), moments, momentum_row=9, matrix_rows=(0,))
 
     def pack(self, y, inertia):
@@ -362,7 +364,9 @@ class SymmetricRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
         group = SO3 if self.bundle.base is SO3 else SOn
         return BundleElement(group(q.reshape(*z.shape[:-1], n, n)), group(p.reshape(*z.shape[:-1], n, n)))
 
-    def exact_flows(self, inertia):
+    def exact_flows(self, inertia, free_part="axes"):
+        if free_part != "axes":
+            raise ValueError("SymmetricRigidBody splits into its axis terms only (free_part='axes').")
         if self.bundle.base is not SO3:
             raise ValueError("SymmetricRigidBody splits on Cartesian(SO3) only; on SO(n) use a PRKMK method.")
         moments = body_frame.principal_moments(inertia, "SymmetricRigidBody", batched=True)
