@@ -212,14 +212,8 @@ def median_ratio(times, numerator, denominator):
 
 
 def machine():
-    return dict(
-        platform=platform.platform(),
-        processor=platform.processor() or platform.machine(),
-        cpus=os.cpu_count(),
-        jax=jax.__version__,
-        devices=[str(d) for d in jax.devices()],
-        device_kind=jax.devices()[0].device_kind,
-    )
+    host = dict(platform=platform.platform(), processor=platform.processor() or platform.machine(), cpus=os.cpu_count())
+    return host | dict(jax=jax.__version__, devices=[str(d) for d in jax.devices()], device_kind=jax.devices()[0].device_kind)
 
 
 def device_name(machine: dict) -> str:

@@ -135,6 +135,10 @@ def _runners(scene_name, n, floor_fractions=pk.kahan_li_8.fractions, dtype=jnp.f
     if scene_name == "heavy top":  # on G×g the fiber's part of each stage is a sum (Cayley's dcay⁻¹ is I there)
         on_g_x_g = HeavyTop(pk.DirectProduct(pk.SO3))
         out["PRKMK DP8 Cayley G×g"] = library(on_g_x_g.method(pk.dormand_prince_8, pk.Cayley()), on_g_x_g)
+        for name, c in (("order 6", pk.kahan_li_6), ("order 8", pk.kahan_li_8)):  # the kinetic energy whole, in closed form
+            out[f"splitting {name} (exact free part)"] = library(scene.splitting(c, free_part="exact"))
+    else:
+        out["exact flow"] = library(scene.exact_flow())
     out["floor order 8 (hand-written)"] = floor
     out["Dopri8 fixed"] = fixed_step(diffrax.Dopri8())
     out["Tsit5 fixed"] = fixed_step(diffrax.Tsit5())
@@ -149,19 +153,10 @@ def _on_embedding(scene, args, solver, dt0, controller, max_steps, result):
     dtype = jnp.result_type(*jax.tree.leaves(args))
 
     def one(q, p):
-        sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(scene.embedding_field),
-            solver,
-            jnp.asarray(0.0, dtype),
-            jnp.asarray(T_END, dtype),
-            None if dt0 is None else jnp.asarray(dt0, dtype),
-            jnp.concatenate([q.reshape(9), p]),
-            args,
-            saveat=diffrax.SaveAt(t1=True),
-            stepsize_controller=controller,
-            max_steps=max_steps,
-        )
-        return result(sol)
+        t0, t1, dt = jnp.asarray(0.0, dtype), jnp.asarray(T_END, dtype), None if dt0 is None else jnp.asarray(dt0, dtype)
+        options = dict(saveat=diffrax.SaveAt(t1=True), stepsize_controller=controller, max_steps=max_steps)
+        y0 = jnp.concatenate([q.reshape(9), p])
+        return result(diffrax.diffeqsolve(diffrax.ODETerm(scene.embedding_field), solver, t0, t1, dt, y0, args, **options))
 
     return lambda q, p: jax.vmap(one)(q, p) if q.ndim == 3 else one(q, p)
 
@@ -188,6 +183,9 @@ SWEEPS = {
     "PRKMK DP8 Cayley": [30, 40, 50, 60, 70, 85, 100, 120, 140, 170, 200, 250],
     "PRKMK DP8 Cayley G×g": [30, 40, 50, 60, 70, 85, 100, 120, 140, 170, 200, 250],
     "floor order 8 (hand-written)": [16, 20, 24, 28, 32, 40, 48, 56, 64, 80, 96, 128, 160],
+    "splitting order 6 (exact free part)": [30, 45, 70, 100, 150, 220],
+    "splitting order 8 (exact free part)": [16, 20, 24, 28, 32, 40, 48, 64, 80, 96],
+    "exact flow": [1, 2],
     "Dopri8 fixed": [25, 35, 42, 50, 60, 70, 85, 100, 120, 140, 170, 200, 250],
     "Tsit5 fixed": [100, 160, 250, 400, 630, 1000, 1600, 2500],
     "Dopri8 PID": [1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12],
@@ -289,18 +287,8 @@ def run(regime, scene_name, quick, rounds, short=False, dtype=jnp.float64, paral
         z = np.asarray(z).reshape(-1, 12)[: len(checked)]
         error = float(np.max(np.abs(z - reference)))
         wall_s, _ = C.median_time(compiled, q, p, repeats=3)  # the chart's point; the table times the picks interleaved
-        rows.append(
-            dict(
-                regime=regime,
-                scene=scene_name,
-                method=method,
-                steps=steps,
-                error=error,
-                wall_s=wall_s,
-                compile_s=compile_s,
-                dtype=jnp.dtype(dtype).name,
-            )
-        )
+        row = dict(regime=regime, scene=scene_name, method=method, steps=steps, error=error, wall_s=wall_s, compile_s=compile_s)
+        rows.append(row | dict(dtype=jnp.dtype(dtype).name))
         if adaptive:
             rows[-1]["rtol"] = n
         compiling = "" if compile_s is None else f" compile {compile_s:5.1f} s"
@@ -343,7 +331,7 @@ def plot(rows, path, targets):
         for method in methods:
             runs = sorted((r for r in rows if (r["scene"], r["regime"], r["method"]) == (scene, regime, method)), key=lambda r: r["steps"])
             if runs:  # in order of step count: a timing's noise shows as a step back
-                style = "-o" if method.startswith(("splitting", "PRKMK")) else ("-.v" if method.startswith("floor") else "--s")
+                style = "-o" if is_library(method) else ("-.v" if method.startswith("floor") else "--s")
                 errors = [max(r["error"], 1e-17) for r in runs]
                 (handles[method],) = ax.loglog([r["wall_s"] for r in runs], errors, style, ms=3, color=colours[method], label=method)
         for target in targets:
@@ -362,20 +350,20 @@ RESULTS_FILES = ("accuracy", "accuracy_16384", "accuracy_gpu_float64")
 """The committed runs, in the order the tables list them (`--name` of each);
 not `accuracy_gpu_float32`, whose diffrax runs ran in float64 (README)."""
 FLOOR = "floor order 8 (hand-written)"
-FAMILIES = (("splittings", "splitting"), ("PRKMK", "PRKMK"))
+FAMILIES = (("splittings", "splitting"), ("PRKMK", "PRKMK"), ("the exact flow", "exact flow"))
 """The library's families: name, and the prefix of their methods in the results."""
 DIFFRAX = ("Dopri8 fixed", "Tsit5 fixed", "Dopri8 PID", "Tsit5 PID")
 
 
 def is_library(method: str) -> bool:
-    return method.startswith(("splitting", "PRKMK"))
+    return method.startswith(("splitting", "PRKMK", "exact flow"))
 
 
 def is_symplectic(method: str) -> bool:
-    """The library's symplectic runs: the splittings and the Lobatto
-    IIIA–IIIB pairs (the explicit RKMK tableaus keep the group, not the
-    symplectic form)."""
-    return method.startswith("splitting") or method.startswith("PRKMK Lobatto")
+    """The library's symplectic runs: the splittings, the exact flow and the
+    Lobatto IIIA–IIIB pairs (the explicit RKMK tableaus keep the group, not
+    the symplectic form)."""
+    return method.startswith(("splitting", "exact flow", "PRKMK Lobatto"))
 
 
 def entries_of(data: dict, source: str) -> list[dict]:
@@ -490,6 +478,26 @@ def summary_table(entries: list[dict]) -> str:
     return "\n".join(lines)
 
 
+EXACT_PAIRS = (("exact flow", "splitting order 8"), ("exact flow", "PRKMK DP8 Cayley"))
+EXACT_PAIRS += tuple((f"splitting order {p} (exact free part)", f"splitting order {p}") for p in (6, 8))
+"""The exact flows' table: each run against the run it would replace."""
+
+
+def exact_flow_table(data: dict) -> str:
+    """`--name accuracy_exact_flow`'s results: at each target, the free body's
+    exact flow and the heavy top's splittings with the exact free part
+    against the runs of the same job that split the kinetic energy into
+    axis terms (or integrate it), interleaved."""
+    rows = []
+    for e in entries_of(data, "accuracy_exact_flow"):
+        for run, peer in ((a, b) for a, b in EXACT_PAIRS if a in e["runs"] and b in e["runs"]):
+            (n, seconds, _), (n_peer, seconds_peer, _) = e["runs"][run], e["runs"][peer]
+            cells = [f"{run} (n = {n})", f"{seconds * 1e3:.3g}", f"{peer} (n = {n_peer})", f"{seconds_peer * 1e3:.3g}"]
+            rows.append([e["scene"], _batch(e["regime"]), f"{e['target']:.0e}", *cells, f"{seconds / seconds_peer:.2f}"])
+    headers = ["scene", "batch", "target", "run", "ms", "against", "ms", "ratio"]
+    return C.measured_on(data) + f" T = {data['t_end']:g}.\n\n" + C.table(headers, rows)
+
+
 def growth_table(data: dict) -> str:
     """`--growth`'s results: for each scene, batch, dtype and method, the
     floor (the smallest error of the sweep), the error at the most steps,
@@ -520,6 +528,7 @@ def tables(results: Path) -> dict[str, str]:
     time over diffrax's at each target."""
     entries = load(results)
     out = {"accuracy": accuracy_table(entries), "decision": decision_table(entries), "summary": summary_table(entries)}
+    out["exact_flow"] = exact_flow_table(C.results_file(results, "accuracy_exact_flow.json"))
     return out | {"float32_growth": growth_table(C.results_file(results, "accuracy_float32_growth.json"))}
 
 
@@ -548,18 +557,10 @@ def main(argv=None):
 
     for scene_name in list(SCENES)[:1] if args.quick else SCENES:
         for regime in args.regimes.split(","):
-            rows += run(
-                regime,
-                scene_name,
-                args.quick,
-                rounds=3 if args.quick else 7,
-                short=args.short,
-                dtype=dtype,
-                parallel_compile=args.parallel_compile,
-                without=args.without.split(","),
-                only=[m for m in args.methods.split(",") if m],
-                growth=args.growth,
-            )
+            only = [m for m in args.methods.split(",") if m]
+            options = dict(short=args.short, dtype=dtype, parallel_compile=args.parallel_compile, only=only, growth=args.growth)
+            options["without"] = args.without.split(",")
+            rows += run(regime, scene_name, args.quick, rounds=3 if args.quick else 7, **options)
             write()  # what a run cut short has measured so far
     plot(rows, out / f"{args.name}.png", targets)
     data = dict(machine=C.machine(), t_end=T_END, targets=targets, rows=rows)

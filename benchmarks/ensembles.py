@@ -54,14 +54,8 @@ def worker(processes, devices, process_id, port, batch, steps, rounds, compare_r
     jax.config.update("jax_enable_x64", True)
     if processes > 1:
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
-        jax.distributed.initialize(
-            f"localhost:{port}",
-            num_processes=processes,
-            process_id=process_id,
-            initialization_timeout=120,
-            heartbeat_timeout_seconds=30,
-            shutdown_timeout_seconds=30,
-        )
+        timeouts = dict(initialization_timeout=120, heartbeat_timeout_seconds=30, shutdown_timeout_seconds=30)
+        jax.distributed.initialize(f"localhost:{port}", num_processes=processes, process_id=process_id, **timeouts)
     method = C.SCENE.method(pk.stormer_verlet)
     qs, pis = C.initial_conditions(batch, seed=11)
     rows = slice(process_id * batch // processes, (process_id + 1) * batch // processes)

@@ -3,9 +3,10 @@
 1. Trajectory-steps per second against batch size, free rigid body, h = 0.01:
    PRKMK Störmer–Verlet (T*SO(3), body form, exp) through `lax.scan`
    (`prkmk_jax.integrate`) and through `diffeqsolve`, in float64 and
-   float32, and diffrax Tsit5 with constant steps on the embedding ℝ⁹×ℝ³.
+   float32, diffrax Tsit5 with constant steps on the embedding ℝ⁹×ℝ³, and
+   for the cost of a step beside it, RKMK 8 (Cayley) and the exact flow.
    The step count per run shrinks with the batch so every run does a
-   similar amount of work; the four run in alternation (7 rounds; medians,
+   similar amount of work; all run in alternation (7 rounds; medians,
    and the median per-round ratio to Tsit5); also reported: implicit
    iterations per step.
 2. Compile time (lower + compile of a fresh jit) against the number of
@@ -88,13 +89,15 @@ def throughput(quick, rounds):
             "PRKMK SV scan float32": (jnp.float32, _scan(method64, steps)),
             "PRKMK SV diffeqsolve": (jnp.float64, _diffeqsolve(method64, steps)),
             "diffrax Tsit5 (embedding)": (jnp.float64, _tsit5(steps)),
+            "PRKMK DP8 Cayley scan": (jnp.float64, _scan(C.SCENE.method(pk.dormand_prince_8, pk.Cayley()), steps)),
+            "exact flow scan": (jnp.float64, _scan(C.SCENE.exact_flow(), steps)),
         }
         compiled, compile_s, iterations, args_of = {}, {}, {}, {}
         for name, (dtype, run) in columns.items():
             args_of[name] = (jnp.asarray(qs, dtype), jnp.asarray(pis, dtype), jnp.asarray(C.INERTIA, dtype))
             compiled[name], compile_s[name] = C.compile_fn(jax.vmap(run, in_axes=(0, 0, None)), *args_of[name])
             iterations[name] = jax.block_until_ready(compiled[name](*args_of[name]))[1]
-        # In alternation, so that a slow spell of the machine hits all four; each with its own arguments.
+        # In alternation, so that a slow spell of the machine hits them all; each with its own arguments.
         bound = {name: functools.partial(fn, *args_of[name]) for name, fn in compiled.items()}
         times = C.interleaved_times(bound, rounds=rounds)
         for name in columns:

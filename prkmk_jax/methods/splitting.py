@@ -87,8 +87,12 @@ class Splitting(AbstractMethod):
       (default), its three axis terms, each a rotation about a body axis;
       "exact", one part, the free body's flow in closed form (Jacobi's
       elliptic functions, `scenes.free_body_flow`), so that only the
-      potential or the torque is split off: fewer, costlier sub-steps with a
-      smaller error constant (the heavy top, the forced body).
+      potential or the torque is split off: a smaller error constant, but
+      each sub-step evaluates elliptic functions where "axes" turns three
+      rotations, so it pays only for a nearly free body
+      (`docs/concepts/choosing.md`; the heavy top, the forced body). A composed
+      step then runs its Strang steps in a `lax.scan`, whose program holds
+      one copy of the flow.
     - `compensated_sum`: in low precision (float32), True (default) runs
       the sub-steps on the step's change and adds it to the state once,
       carrying what that sum loses into the next step (`compensated`), so
@@ -202,7 +206,15 @@ class Splitting(AbstractMethod):
             z_end = self._strang_steps_in_loop(flows, t, dt, z, args)
             return z_end - z if change_only else z_end
 
-        z_k = unrolled() if self.coefficients is None else differentiated_as(unrolled, in_loop)
+        if self.coefficients is None:
+            z_k = unrolled()
+        elif self.free_part == "exact":
+            # The free body's exact flow is a program of loops of its own (the
+            # elliptic functions): unrolled, a composed step would compile one
+            # copy of it for each of its Strang steps.
+            z_k = in_loop()
+        else:
+            z_k = differentiated_as(unrolled, in_loop)
         rounding = None
         if change_only:
             # What the sum lost is unpacked as the state is (a relabelling of
