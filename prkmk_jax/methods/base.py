@@ -415,6 +415,39 @@ class AbstractMethod(eqx.Module):
         return _step(self, vector_field, t, y, dt, args, carried)
 
 
+class AbstractOfOneScene(AbstractMethod):
+    """A method built from one scene's own solution (its parts' exact flows,
+    or its whole flow): it lives on the scene's bundle and form, integrates
+    that scene only, and carries the field at a step's start (for dense
+    output) and nothing else."""
+
+    scene: eqx.AbstractVar[AbstractFieldOnBundle]
+    built_by: eqx.AbstractClassVar[str]
+    """How the scene builds this method, for the message of `check_fits`."""
+
+    @property
+    def bundle(self):  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a property implements an AbstractVar
+        return self.scene.bundle
+
+    @property
+    def form(self):  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a property implements an AbstractVar
+        return self.scene.form
+
+    def check_fits(self, vector_field) -> None:
+        if not (vector_field is self.scene or eqx.tree_equal(vector_field, self.scene) is True):
+            raise ValueError(
+                f"this {type(self).__name__} integrates the scene it was built for ({type(self.scene).__name__}), but was given the "
+                f"vector field {type(vector_field).__name__}; build it from that scene ({self.built_by})."
+            )
+
+    def initial_carried(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None):
+        """The field at (t, y): all a step carries (for dense output)."""
+        return self.generator(vector_field, t, y, args)
+
+    def start_field(self, carried):
+        return carried
+
+
 def as_traced(x):
     """A Python or NumPy number as an array, so that a compiled function
     takes it as an argument (one compilation for every value, and no

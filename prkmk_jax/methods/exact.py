@@ -9,17 +9,15 @@ accumulates. The flow of a time-independent system is a group (φ_{−h} =
 φ_h⁻¹), so the method is symmetric and undoes its own steps.
 """
 
-import equinox as eqx
+from typing import ClassVar
+
 import jax
 import jax.numpy as jnp
-from jaxtyping import PyTree
 
-from .._bundles import BundleElement
-from .._fields import Time, VectorField
 from ..coordinates import AbstractCoordinates, Exp
 from ..exact_flows import AbstractSolvedScene
 from ..groups._util import is_low_precision
-from .base import RESULTS, AbstractMethod, Step, check_parts, flag_nonfinite
+from .base import RESULTS, AbstractOfOneScene, Step, check_parts, flag_nonfinite
 
 EXACT_ORDER = 99
 """The `order` an exact flow reports: it has no truncation error; an integer
@@ -27,7 +25,7 @@ above every tableau's and composition's order keeps what the drivers do
 with orders (dense output of order min(p, 3)) as it is."""
 
 
-class ExactFlow(AbstractMethod):
+class ExactFlow(AbstractOfOneScene):
     """The exact flow of `scene` (module docstring); built by the scene's
     `exact_flow()`.
 
@@ -40,7 +38,8 @@ class ExactFlow(AbstractMethod):
     coordinates with the exact dexp⁻¹ (`coordinates`).
     """
 
-    scene: AbstractSolvedScene
+    scene: AbstractSolvedScene  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a field implements an AbstractVar, narrowed
+    built_by: ClassVar[str] = "scene.exact_flow()"  # pyright: ignore[reportIncompatibleVariableOverride]  # implements an AbstractClassVar
 
     def __check_init__(self):
         if not isinstance(self.scene, AbstractSolvedScene):
@@ -57,14 +56,6 @@ class ExactFlow(AbstractMethod):
         return Exp(truncation=None)
 
     @property
-    def bundle(self):  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a property implements an AbstractVar
-        return self.scene.bundle
-
-    @property
-    def form(self):  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a property implements an AbstractVar
-        return self.scene.form
-
-    @property
     def order(self) -> int:
         return EXACT_ORDER
 
@@ -72,20 +63,6 @@ class ExactFlow(AbstractMethod):
     def is_symmetric(self) -> bool:
         """An exact flow is a group in h: φ_{−h} = φ_h⁻¹."""
         return True
-
-    def check_fits(self, vector_field) -> None:
-        if not (vector_field is self.scene or eqx.tree_equal(vector_field, self.scene) is True):
-            raise ValueError(
-                f"this ExactFlow integrates the scene it was built for ({type(self.scene).__name__}), but was given the vector "
-                f"field {type(vector_field).__name__}; build it from that scene (scene.exact_flow())."
-            )
-
-    def initial_carried(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None):
-        """The field at (t, y): all a step carries (for dense output)."""
-        return self.generator(vector_field, t, y, args)
-
-    def start_field(self, carried):
-        return carried
 
     def carried_step(self, vector_field, t, y, dt, args, carried) -> Step:
         del carried

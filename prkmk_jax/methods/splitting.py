@@ -28,6 +28,8 @@ middle part φ_k runs at t + h/2. This is Strang splitting of the system with
 the clock t' = 1 added to φ_k, so it keeps symmetry and order 2.
 """
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -35,13 +37,13 @@ from jaxtyping import PyTree
 
 from .._bundles import BundleElement
 from .._exact_sums import two_sum
-from .._fields import Time, VectorField
+from .._fields import Time
 from ..compositions import CompositionCoefficients
 from ..coordinates import AbstractCoordinates, Exp
 from ..exact_flows import AbstractSplitScene, FreePart, renormalized_rotations
 from ..groups._util import LOW_PRECISION_EPS, is_low_precision
 from ..groups.trig import computed_once
-from .base import RESULTS, AbstractMethod, Step, check_parts, differentiated_as, flag_nonfinite, fractions_and_starts
+from .base import RESULTS, AbstractOfOneScene, Step, check_parts, differentiated_as, flag_nonfinite, fractions_and_starts
 
 
 def sub_steps(num_parts: int, fractions: tuple[float, ...], merge: bool) -> tuple[tuple[int, float, float], ...]:
@@ -65,7 +67,7 @@ def sub_steps(num_parts: int, fractions: tuple[float, ...], merge: bool) -> tupl
     return tuple(steps)
 
 
-class Splitting(AbstractMethod):
+class Splitting(AbstractOfOneScene):
     """The exact-flow splitting of `scene` (module docstring).
 
     **Arguments:**
@@ -108,11 +110,12 @@ class Splitting(AbstractMethod):
     rotation's sine and cosine once (`groups.computed_once`).
     """
 
-    scene: AbstractSplitScene
+    scene: AbstractSplitScene  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a field implements an AbstractVar, narrowed
     coefficients: CompositionCoefficients | None = eqx.field(static=True, default=None)
     coordinates: AbstractCoordinates = Exp()
     compensated_sum: bool = eqx.field(static=True, default=True)
     free_part: FreePart = eqx.field(static=True, default="axes")
+    built_by: ClassVar[str] = "scene.splitting(), or use a PRKMK method"  # pyright: ignore[reportIncompatibleVariableOverride]  # implements an AbstractClassVar
 
     def __check_init__(self):
         if self.free_part not in ("axes", "exact"):
@@ -135,14 +138,6 @@ class Splitting(AbstractMethod):
         check_parts(self.scene.bundle, self.coordinates, self.scene.form)
 
     @property
-    def bundle(self):  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a property implements an AbstractVar
-        return self.scene.bundle
-
-    @property
-    def form(self):  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox: a property implements an AbstractVar
-        return self.scene.form
-
-    @property
     def order(self) -> int:
         return 2 if self.coefficients is None else self.coefficients.order
 
@@ -150,20 +145,6 @@ class Splitting(AbstractMethod):
     def is_symmetric(self) -> bool:
         """The Strang composition of exact flows, and symmetric compositions of it, are symmetric."""
         return True
-
-    def check_fits(self, vector_field) -> None:
-        if not (vector_field is self.scene or eqx.tree_equal(vector_field, self.scene) is True):
-            raise ValueError(
-                f"this Splitting integrates the scene it was built for ({type(self.scene).__name__}), but was given the vector field "
-                f"{type(vector_field).__name__}; build the splitting from that scene (scene.splitting()) or use a PRKMK method."
-            )
-
-    def initial_carried(self, vector_field: VectorField, t: Time, y: BundleElement, args: PyTree = None):
-        """The field at (t, y): all a step carries (for dense output)."""
-        return self.generator(vector_field, t, y, args)
-
-    def start_field(self, carried):
-        return carried
 
     def carried_step(self, vector_field, t, y, dt, args, carried) -> Step:
         del carried  # explicit: nothing to start from
