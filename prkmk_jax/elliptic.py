@@ -185,21 +185,21 @@ def carlson_rd(x: ArrayLike, y: ArrayLike, z: ArrayLike) -> Array:
 def ellipk(m: ArrayLike) -> Array:
     """K(m) = F(π/2 | m), m ≤ 1 (`scipy.special.ellipk`)."""
     (m,) = _float(m)
-    return _ellipk(m, 1 - m)
+    return _ellipk(1 - m)
 
 
-def _ellipk(m: Array, m1: Array) -> Array:
-    del m
+def _ellipk(m1: Array) -> Array:
+    """K from the complementary parameter m1 = 1 − m."""
     return carlson_rf(jnp.zeros_like(m1), m1, jnp.ones_like(m1))
 
 
-def _quarter_turns(phi: Array) -> tuple[Array, Array, Array, Array]:
-    """φ = jπ + φ_r with |φ_r| ≤ π/2: (j, sin φ_r, cos² φ_r, sin² φ_r)."""
+def _quarter_turns(phi: Array) -> tuple[Array, Array, Array]:
+    """φ = jπ + φ_r with |φ_r| ≤ π/2: (j, sin φ_r, cos φ_r), cos φ_r ≥ 0. The
+    incomplete integrals, and any function of φ continued through every
+    quarter turn, are written on φ_r."""
     j = jnp.round(phi / jnp.pi)
     reduced = phi - j * jnp.pi
-    s = jnp.sin(reduced)
-    c = jnp.cos(reduced)
-    return j, s, c * c, s * s
+    return j, jnp.sin(reduced), jnp.cos(reduced)
 
 
 def ellipf(phi: ArrayLike, m: ArrayLike) -> Array:
@@ -215,10 +215,12 @@ def _ellipf(phi: Array, m: Array, m1: Array) -> Array:
 
 
 def _ellipf_value(phi, m, m1):
-    j, s, c2, s2 = _quarter_turns(phi)
+    del m  # read through m1
+    j, s, c = _quarter_turns(phi)
+    c2, s2 = c * c, s * s
     # 1 − m sin²φ as cos²φ + m1 sin²φ: no cancellation as m → 1.
     reduced = s * carlson_rf(c2, c2 + m1 * s2, jnp.ones_like(phi))
-    return jnp.where(j == 0, reduced, reduced + 2 * j * _ellipk(m, m1))
+    return jnp.where(j == 0, reduced, reduced + 2 * j * _ellipk(m1))
 
 
 @_ellipf.defjvp
@@ -250,8 +252,9 @@ def _ellippi_reduced(n, s, c2, s2, m1):
 
 
 def _ellippi_value(n, phi, m, m1):
-    j, s, c2, s2 = _quarter_turns(phi)
-    reduced = _ellippi_reduced(n, s, c2, s2, m1)
+    del m  # read through m1
+    j, s, c = _quarter_turns(phi)
+    reduced = _ellippi_reduced(n, s, c * c, s * s, m1)
     # The complete integral at the parameters' shape: amplitudes stacked on
     # a leading axis (several ends of one interval) share it.
     ones = jnp.ones(jnp.broadcast_shapes(jnp.shape(n), jnp.shape(m1)), reduced.dtype)

@@ -150,7 +150,7 @@ class Splitting(AbstractOfOneScene):
         del carried  # explicit: nothing to start from
         dtype = jnp.result_type(*jax.tree.leaves(y))
         t, dt = jnp.asarray(t, dtype), jnp.asarray(dt, dtype)
-        flows = self.scene.exact_flows(args, free_part=self.free_part)
+        flows = self._parts(args)
         z = self.scene.pack(y, args)
         plan = self._sub_steps(len(flows))
         # At most one Strang step's sub-steps (2n − 1 for n parts) are left
@@ -237,6 +237,10 @@ class Splitting(AbstractOfOneScene):
 
         return jax.lax.scan(strang_step, z, (fractions, starts))[0]
 
+    def _parts(self, args: PyTree):
+        """The scene's parts for `args`, its kinetic energy as `free_part` says."""
+        return self.scene.exact_flows(args, free_part=self.free_part)
+
     def _sub_steps(self, num_parts: int) -> tuple[tuple[int, float, float], ...]:
         """This method's sub-steps (`sub_steps`): its composition's fractions,
         adjacent flows merged where the map sends lines to subgroups."""
@@ -260,7 +264,7 @@ class Splitting(AbstractOfOneScene):
         if is_low_precision(dtype):
             raise ValueError(f"reverse_step needs a dtype with machine epsilon at most {LOW_PRECISION_EPS:g}, got {dtype}.")
         t, dt = jnp.asarray(t, dtype), jnp.asarray(dt, dtype)
-        plan = self._sub_steps(len(self.scene.exact_flows(args, free_part=self.free_part)))
+        plan = self._sub_steps(len(self._parts(args)))
         z = self.scene.pack(y_next, args)
         _, pull_unpack = jax.vjp(lambda z: self.scene.unpack(z, y_next, args), z)
         (cotangent_z,) = pull_unpack(cotangent)
@@ -270,10 +274,10 @@ class Splitting(AbstractOfOneScene):
 
             def coefficients(z, args_dynamic, part=part, start=start, step=step):
                 args = eqx.combine(args_dynamic, args_static)
-                flow = self.scene.exact_flows(args, free_part=self.free_part)[part]
+                flow = self._parts(args)[part]
                 return flow.coefficients(self.coordinates, t + start * dt, z, step * dt, args)
 
-            flow = self.scene.exact_flows(args, free_part=self.free_part)[part]
+            flow = self._parts(args)[part]
             if flow.reads_unmoved_rows_only:
                 # The coefficients and their derivatives are the same at the
                 # sub-step's end as at its start: computed once.

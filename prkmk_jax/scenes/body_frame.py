@@ -89,7 +89,7 @@ def packed_rotation_and_vector(y: BundleElement) -> Packed:
     return jnp.moveaxis(flat, -1, 0)
 
 
-def unpacked_rotation_and_vector(z: Packed, like: BundleElement) -> BundleElement:
+def unpacked_rotation_and_vector(z: Packed, like: BundleElement | None = None) -> BundleElement:
     """Inverse of `packed_rotation_and_vector`."""
     flat = jnp.moveaxis(z, 0, -1)
     del like  # every such state has the same structure

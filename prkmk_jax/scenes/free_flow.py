@@ -52,8 +52,10 @@ from jax.scipy.linalg import expm
 from jaxtyping import Array, Float
 
 from .. import elliptic, exact_flows
+from .._bundles import BundleElement
 from ..groups import SO3, hat
-from .body_frame import InertiaOrderedFrame
+from .base import rotation_matrix
+from .body_frame import InertiaOrderedFrame, packed_rotation_and_vector, unpacked_rotation_and_vector
 
 
 def _least_rotation(v: Array, e: Array) -> Array:
@@ -167,8 +169,10 @@ def _moving_flow(q: Array, pi: Array, inertia: Array, h: Array) -> tuple[Array, 
     d_d = p_s**2 * (i_s - i_c) / i_s + p_d**2 * (i_d - i_c) / i_d  # |Π|² − 2H·I_c
     d_s = p_c**2 * (i_c - i_s) / i_c + p_d**2 * (i_d - i_s) / i_d  # |Π|² − 2H·I_s
     g = p_c**2 * (1 / i_c - 1 / i_d) + p_s**2 * (1 / i_s - 1 / i_d)  # 2H − |Π|²/I_d
-    # Where Π stands still (on the d axis, or a sphere), every ratio below
-    # is 0/0: safe stand-ins (double `where`), and Π(h) = Π, ψ = |Π|h/I_d.
+    # `free_body_flow` sends no state whose Π stands still here, but squares
+    # of tiny components can underflow to a difference of 0, where every
+    # ratio below is 0/0: safe stand-ins (double `where`), and Π(h) = Π,
+    # ψ = |Π|h/I_d, the steady turn such a state is within round-off of.
     moving = (d_c != 0) & (d_d != 0) & (i_d != i_s)
     d_c, d_d, d_s = (jnp.where(moving, x, 1.0) for x in (d_c, d_d, d_s))
     gap_dc, gap_ds, gap_sc = jnp.where(moving, i_d - i_c, 1.0), jnp.where(moving, i_d - i_s, 1.0), i_s - i_c
@@ -197,9 +201,8 @@ def _moving_flow(q: Array, pi: Array, inertia: Array, h: Array) -> tuple[Array, 
     n = 1 - a_s2 / a_c2
 
     def theta(phi):
-        turns = jnp.round(phi / jnp.pi)
-        reduced = phi - turns * jnp.pi
-        return jnp.arctan2(a_s * jnp.sin(reduced), a_c * jnp.cos(reduced)) + turns * jnp.pi
+        turns, sine, cosine = elliptic._quarter_turns(phi)
+        return jnp.arctan2(a_s * sine, a_c * cosine) + turns * jnp.pi
 
     # Both ends in one evaluation of each integral (one program, not two).
     ends = jnp.stack(jnp.broadcast_arrays(phi0, phi1))
@@ -238,10 +241,9 @@ class FreeBodyFlow(exact_flows.AbstractExactFlow):
 
     def moved(self, z, coefficients):
         moments, h = coefficients
-        body = jnp.moveaxis(self.frame.restore(z, (0,), (9,)), 0, -1)
-        q, pi = free_body_flow(body[..., :9].reshape(*body.shape[:-1], 3, 3), body[..., 9:], moments, h)
-        moved = jnp.concatenate([q.reshape(*q.shape[:-2], 9), pi], axis=-1)
-        return self.frame.relabel(jnp.moveaxis(moved, -1, 0), (0,), (9,))
+        y = unpacked_rotation_and_vector(self.frame.restore(z, (0,), (9,)))
+        q, pi = free_body_flow(rotation_matrix(y.base), y.fiber, moments, h)
+        return self.frame.relabel(packed_rotation_and_vector(BundleElement(SO3(q), pi)), (0,), (9,))
 
     def moved_change(self, start, change, coefficients):
         # Rounded relative to the state, not to the change: the closed form
