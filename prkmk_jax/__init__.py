@@ -49,6 +49,7 @@ from .coordinates import Cayley as Cayley
 from .coordinates import Exp as Exp
 from .groups import SO3 as SO3
 from .groups import SOn as SOn
+from .groups import UnitQuaternion as UnitQuaternion
 from .groups import VectorSpace as VectorSpace
 from .groups import hat as hat
 from .groups import vee as vee

@@ -60,6 +60,8 @@ def initial_state(bundle, seed=0, m0=M0):
     q0 = random_rotation(seed)
     if isinstance(bundle, pk.Cartesian):
         return symmetric_initial_state(q0, m0)  # P₀ = Q₀ exp(sinh⁻¹(M₀/2))
+    if bundle.base is pk.UnitQuaternion:
+        return pk.BundleElement(pk.UnitQuaternion.from_matrix(jnp.asarray(q0)), jnp.asarray(m0))
     return pk.BundleElement(pk.SO3(jnp.asarray(q0)), jnp.asarray(m0))
 
 

@@ -38,6 +38,8 @@ SYMMETRIC_SO4 = SymmetricRigidBody(pk.Cartesian(pk.SOn))
 SYMMETRIC = SymmetricRigidBody()
 SYMMETRIC_STATE = pk.BundleElement(pk.SO3(jnp.eye(3)), pk.SO3(jnp.eye(3)))
 SO4_STATE = pk.BundleElement(pk.SOn(jnp.eye(4)), pk.SOn(jnp.eye(4)))
+QUATERNION_BODY = FreeRigidBody(pk.Cotangent(pk.UnitQuaternion))
+QUATERNION_METHOD = QUATERNION_BODY.method(pk.stormer_verlet)
 SPACE_FORM_METHOD = pk.PRKMK(COTANGENT, tableau=pk.stormer_verlet)  # form="space" by default
 
 
@@ -215,6 +217,15 @@ STATIC = {
     ),
     "exact flow of another field": (lambda: _integrate(method=FREE_BODY.exact_flow()), ValueError, "integrates the scene it was built for"),
     "exact flow of a scene without one": (lambda: pk.ExactFlow(TOP), TypeError, "closed form"),  # pyright: ignore[reportCallIssue]
+    # unit quaternions
+    "UnitQuaternion of three numbers": (lambda: pk.UnitQuaternion(jnp.ones(3)), ValueError, r"\(\.\.\., 4\) array"),
+    "UnitQuaternion of integers": (lambda: pk.UnitQuaternion(jnp.array([1, 0, 0, 0])), TypeError, "floating-point dtype"),
+    "splitting of a scene on UnitQuaternion": (
+        lambda: FreeRigidBody(pk.Cotangent(pk.UnitQuaternion)).splitting(),
+        TypeError,
+        "on UnitQuaternion does not split",
+    ),
+    "symmetric body on UnitQuaternion": (lambda: SymmetricRigidBody(pk.Cartesian(pk.UnitQuaternion)), TypeError, "SymmetricRigidBody"),
     "splitting of the symmetric body on SO(4)": (
         lambda: _integrate(SO4_STATE, method=SYMMETRIC_SO4.splitting(), field=SYMMETRIC_SO4, args=jnp.ones(4)),
         ValueError,
@@ -328,6 +339,16 @@ RUNTIME = {
         lambda j: _integrate(SO4_STATE, field=SYMMETRIC_SO4, method=SYMMETRIC_SO4.method(pk.symplectic_euler), args=j),
         jnp.array([0.9, 0.7, -0.8, 0.3]),
         r"SymmetricRigidBody: every Jᵢ \+ Jⱼ",
+    ),
+    "integrate, a quaternion y0 not of norm 1": (
+        lambda q: _integrate(pk.BundleElement(pk.UnitQuaternion(q), GOOD.fiber), field=QUATERNION_BODY, method=QUATERNION_METHOD),
+        jnp.array([1.0, 0.1, 0.0, 0.0]),
+        "not of norm 1",
+    ),
+    "integrate, a quaternion y0 not finite": (
+        lambda q: _integrate(pk.BundleElement(pk.UnitQuaternion(q), GOOD.fiber), field=QUATERNION_BODY, method=QUATERNION_METHOD),
+        jnp.array([1.0, jnp.nan, 0.0, 0.0]),
+        "UnitQuaternion element is not finite",
     ),
     "diffeqsolve, y0 not orthogonal": (lambda y: _diffeqsolve(y), _with_base(NOT_ORTHOGONAL), "not orthogonal"),
     "diffeqsolve, y0 a reflection": (lambda y: _diffeqsolve(y), _with_base(REFLECTION), "det = −1"),

@@ -17,6 +17,7 @@ from prkmk_jax.scenes.rigid_body import symmetric_initial_state
 
 COTANGENT, CARTESIAN = pk.Cotangent(pk.SO3), pk.Cartesian(pk.SO3)
 FREE, TOP, SYMMETRIC = FreeRigidBody(), HeavyTop(), SymmetricRigidBody()
+QUATERNION_BODY = FreeRigidBody(pk.Cotangent(pk.UnitQuaternion))
 SV = pk.PRKMK(COTANGENT, pk.Exp(), pk.stormer_verlet, form="body")
 STEPS, H = 400, 0.01
 EPS32 = float(jnp.finfo(jnp.float32).eps)
@@ -31,6 +32,8 @@ def _steady_spin(bundle):
     its rotation drifts off the group by ~5e-8 a step in float32."""
     if bundle == CARTESIAN:
         return symmetric_initial_state(np.eye(3), np.array([0.0, 0.0, 1.0]))
+    if bundle.base is pk.UnitQuaternion:
+        return pk.BundleElement(pk.UnitQuaternion(jnp.array([1.0, 0.0, 0.0, 0.0])), jnp.array([0.0, 0.0, 1.0]))
     return pk.BundleElement(pk.SO3(jnp.eye(3)), jnp.array([0.0, 0.0, 1.0]))
 
 
@@ -56,6 +59,7 @@ KINDS = {
         pk.Symmetrized(pk.PRKMK(CARTESIAN, pk.Exp(), pk.symplectic_euler, form="body")),
         INERTIA,
     ),
+    "PRKMK SV on unit quaternions": (QUATERNION_BODY, QUATERNION_BODY.method(pk.stormer_verlet), INERTIA),
     "Splitting, free body": (FREE, FREE.splitting(pk.suzuki_5), INERTIA),
     "Splitting, symmetric body": (SYMMETRIC, SYMMETRIC.splitting(), INERTIA),
 }
@@ -68,7 +72,13 @@ def _two_states(bundle):
 
 
 def _groups(y):
-    return [g.matrix for g in (y.base, y.fiber) if isinstance(g, pk.SO3)]
+    """The rotation matrices of a state (a quaternion's: its defect is about
+    2·| |q|² − 1 |)."""
+    return [
+        g.as_matrix() if isinstance(g, pk.UnitQuaternion) else g.matrix
+        for g in (y.base, y.fiber)
+        if isinstance(g, (pk.SO3, pk.UnitQuaternion))
+    ]
 
 
 @pytest.mark.parametrize("kind", KINDS)

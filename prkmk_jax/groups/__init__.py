@@ -1,5 +1,6 @@
 from .base import AbstractLieGroup as AbstractLieGroup
 from .base import AbstractQuadraticGroup as AbstractQuadraticGroup
+from .quaternion import UnitQuaternion as UnitQuaternion
 from .rotation import AbstractRotationGroup as AbstractRotationGroup
 from .so3 import SO3 as SO3
 from .so3 import hat as hat

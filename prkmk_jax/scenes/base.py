@@ -21,7 +21,7 @@ from .._fields import AbstractFieldOnBundle, Time
 from ..compositions import CompositionCoefficients
 from ..coordinates import AbstractCoordinates, Exp
 from ..exact_flows import FreePart
-from ..groups import SO3, AbstractRotationGroup
+from ..groups import SO3, AbstractLieGroup, AbstractRotationGroup, UnitQuaternion
 from ..methods.prkmk import PRKMK
 from ..methods.splitting import Splitting
 from ..tableaus import PartitionedTableau
@@ -114,6 +114,11 @@ class AbstractScene(AbstractFieldOnBundle):
         with `coefficients`, of their order, its kinetic energy split into
         axis terms or taken whole (`free_part`); `TypeError` for a scene that
         does not split."""
+        if self.bundle.base is UnitQuaternion:
+            raise TypeError(
+                f"{type(self).__name__} on UnitQuaternion does not split: the splittings turn the columns of a rotation matrix; "
+                "use a PRKMK method (`method(...)`), or the free body's `exact_flow()`, or the scene on SO3."
+            )
         coordinates = Exp() if coordinates is None else coordinates
         # Splitting checks the scene's type itself, with its own message.
         return Splitting(scene=self, coefficients=coefficients, coordinates=coordinates, free_part=free_part)  # pyright: ignore[reportCallIssue, reportArgumentType]  # equinox: AbstractVars implemented by properties are not __init__ fields
@@ -194,11 +199,28 @@ def checked_vector(owner: str, vector) -> Array:
 
 
 def rotation_matrix(element) -> Array:
-    """The matrix of a rotation (`SO3`, `SOn`; any leading axes): the groups
-    the scenes live on."""
+    """The matrix of a rotation (`SO3`, `SOn`, `UnitQuaternion`; any leading
+    axes): the groups the scenes live on."""
+    if isinstance(element, UnitQuaternion):
+        return element.as_matrix()
     if not isinstance(element, AbstractRotationGroup):
-        raise TypeError(f"this scene lives on rotation groups (SO3, SOn), got a {type(element).__name__} element.")
+        raise TypeError(f"this scene lives on rotation groups (SO3, SOn, UnitQuaternion), got a {type(element).__name__} element.")
     return element.matrix
+
+
+ATTITUDES = (SO3, UnitQuaternion)
+"""The representations of a body's attitude the one-body scenes accept."""
+
+
+def attitude_like(element: SO3 | UnitQuaternion, matrix: Array) -> SO3 | UnitQuaternion:
+    """The rotation `matrix` in `element`'s representation. A quaternion is
+    continued from `element` (q times the quaternion with w ≥ 0 of the turn
+    qᵀ·matrix), so that a step that turns by less than π never jumps from q
+    to −q."""
+    if isinstance(element, UnitQuaternion):
+        turn = jnp.swapaxes(element.as_matrix(), -1, -2) @ matrix
+        return element.multiply(UnitQuaternion.from_matrix(turn))
+    return SO3(matrix)
 
 
 def derived_embedding_field(scene: AbstractScene, t: Time, z: Float[Array, " d"], args: PyTree) -> Float[Array, " d"]:
@@ -218,9 +240,11 @@ def derived_embedding_field(scene: AbstractScene, t: Time, z: Float[Array, " d"]
     return jax.jvp(moved, (zero,), (jnp.ones_like(zero),))[1]
 
 
-def rotation_and_vector_state(z: Float[Array, "*batch 12"]) -> BundleElement:
-    """`rotation_and_vector_embedding`'s inverse: (SO3(Q), v)."""
-    return BundleElement(SO3(z[..., :9].reshape(*z.shape[:-1], 3, 3)), z[..., 9:])
+def rotation_and_vector_state(z: Float[Array, "*batch 12"], attitude: type[AbstractLieGroup] = SO3) -> BundleElement:
+    """`rotation_and_vector_embedding`'s inverse: (Q, v), Q an `SO3` or the
+    `UnitQuaternion` (w ≥ 0) of its matrix."""
+    matrix = z[..., :9].reshape(*z.shape[:-1], 3, 3)
+    return BundleElement(UnitQuaternion.from_matrix(matrix) if attitude is UnitQuaternion else SO3(matrix), z[..., 9:])
 
 
 def rotation_and_vector_embedding(y: BundleElement) -> Float[Array, "*batch 12"]:

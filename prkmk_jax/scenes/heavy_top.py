@@ -31,6 +31,7 @@ from .._bundles import AbstractBundle, BundleElement, Cotangent, DirectProduct
 from ..groups import SO3, hat
 from . import body_frame
 from .base import (
+    ATTITUDES,
     AbstractScene,
     checked_moments,
     checked_parameters,
@@ -101,8 +102,8 @@ class HeavyTop(AbstractScene, exact_flows.AbstractSplitScene):
     rotation_rows: ClassVar[tuple[int, ...]] = (0,)  # pyright: ignore[reportIncompatibleVariableOverride]  # an AbstractClassVar
 
     def __check_init__(self):
-        if not isinstance(self.bundle, (Cotangent, DirectProduct)) or self.bundle.base is not SO3:
-            raise TypeError(f"HeavyTop lives on Cotangent(SO3) or DirectProduct(SO3), got {self.bundle!r}.")
+        if not isinstance(self.bundle, (Cotangent, DirectProduct)) or self.bundle.base not in ATTITUDES:
+            raise TypeError(f"HeavyTop lives on Cotangent(G) or DirectProduct(G) for G = SO3 or UnitQuaternion, got {self.bundle!r}.")
 
     def checked_args(self, args: TopParameters) -> TopParameters:
         """`TopParameters` with principal moments (…, 3), each > 0, and a
@@ -141,7 +142,7 @@ class HeavyTop(AbstractScene, exact_flows.AbstractSplitScene):
         return rotation_and_vector_embedding(y)
 
     def from_embedding(self, z: Float[Array, "*batch 12"]) -> BundleElement:
-        return rotation_and_vector_state(z)
+        return rotation_and_vector_state(z, self.bundle.base)
 
     def exact_flows(self, args: TopParameters, free_part="axes"):
         moments = body_frame.principal_moments(args.inertia, "HeavyTop", batched=True)

@@ -28,7 +28,9 @@ from ..groups import SO3, SOn, hat, vee
 from ..methods.exact import ExactFlow
 from . import body_frame
 from .base import (
+    ATTITUDES,
     AbstractScene,
+    attitude_like,
     checked_inertia_tensor,
     checked_moments,
     checked_pair_masses,
@@ -242,9 +244,10 @@ class FreeRigidBody(AbstractScene, exact_flows.AbstractSplitScene, exact_flows.A
 
     def __check_init__(self):
         left = isinstance(self.bundle, AbstractSemidirect) and self.bundle.trivialization == "left"
-        if not (left or isinstance(self.bundle, DirectProduct)) or self.bundle.base is not SO3:
+        if not (left or isinstance(self.bundle, DirectProduct)) or self.bundle.base not in ATTITUDES:
             raise TypeError(
-                f"FreeRigidBody lives on Cotangent(SO3), Semidirect(SO3, 'left') or DirectProduct(SO3), got {type(self.bundle).__name__}."
+                "FreeRigidBody lives on Cotangent(G), Semidirect(G, 'left') or DirectProduct(G) for G = SO3 or UnitQuaternion, "
+                f"got {self.bundle!r}."
             )
         if self.form != "body":
             raise ValueError("FreeRigidBody is written in body form.")
@@ -279,7 +282,7 @@ class FreeRigidBody(AbstractScene, exact_flows.AbstractSplitScene, exact_flows.A
         return rotation_and_vector_embedding(y)
 
     def from_embedding(self, z: Float[Array, "*batch 12"]) -> BundleElement:
-        return rotation_and_vector_state(z)
+        return rotation_and_vector_state(z, self.bundle.base)
 
     def embedding_field(self, t, z, inertia):
         """Written out (`embedding_field`, the Euclidean peers' field in the
@@ -295,7 +298,7 @@ class FreeRigidBody(AbstractScene, exact_flows.AbstractSplitScene, exact_flows.A
         del t  # the free body's field does not depend on time
         moments = body_frame.principal_moments(inertia, "FreeRigidBody", closed_form=True)
         q, pi = free_body_flow(rotation_matrix(y.base), y.fiber, moments, h)
-        return BundleElement(SO3(q), pi)
+        return BundleElement(attitude_like(y.base, q), pi)
 
     def exact_flows(self, inertia, free_part="axes"):
         moments = body_frame.principal_moments(inertia, "FreeRigidBody")

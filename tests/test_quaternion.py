@@ -1,0 +1,181 @@
+"""Unit quaternions: the group is SO(3) through the rotation matrix (every
+map checked against `SO3`'s on sampled vectors, near-identity ones
+included), the changes round relative to the change, the double cover is
+handled, and every family of method on the free body and the heavy top
+computes on quaternions what it computes on rotation matrices."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given
+
+import prkmk_jax as pk
+from helpers import INERTIA, TOP_ARGS, algebra_vectors, central_differences
+from prkmk_jax.scenes import FreeRigidBody, HeavyTop, random_rotation
+from prkmk_jax.scenes.base import rotation_matrix
+
+Q, S = pk.UnitQuaternion, pk.SO3
+IDENTITY = jnp.asarray([1.0, 0.0, 0.0, 0.0])
+
+
+def _close(a, b, tol=1e-14):
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=tol)
+
+
+@given(a=algebra_vectors(max_norm=3.1), b=algebra_vectors(max_norm=3.1), c=algebra_vectors(max_norm=3.1))
+def test_every_map_is_so3_through_the_matrix(a, b, c):
+    u, v, x = jnp.asarray(a), jnp.asarray(b), jnp.asarray(c)
+    p, q = Q.exp(u), Q.exp(v)
+    _close(p.as_matrix(), S.exp(u).matrix)
+    _close(Q.cayley(u).as_matrix(), S.cayley(u).matrix)
+    _close((p @ q).as_matrix(), S.exp(u).matrix @ S.exp(v).matrix)
+    _close(p.inverse().as_matrix(), S.exp(u).matrix.T)
+    _close(p.adjoint(x), S.exp(u).matrix @ x)
+    _close(p.log(), S.exp(u).log(), 1e-12)
+    _close(Q.cayley(u).cayley_inverse(), u, 1e-12)
+    _close(Q.from_matrix(S.exp(u).matrix).as_matrix(), S.exp(u).matrix)
+    # The group laws, on the quaternions themselves.
+    r = Q.exp(x)
+    _close(((p @ q) @ r).wxyz, (p @ (q @ r)).wxyz)
+    _close((p @ p.inverse()).wxyz, IDENTITY)
+    _close((p.identity_like() @ p).wxyz, p.wxyz)
+    # The actions on the algebra are Ad of the quaternions the maps give.
+    _close(Q.exp_adjoint(u, x), p.adjoint(x))
+    _close(Q.cayley_adjoint(u, x), Q.cayley(u).adjoint(x))
+
+
+@given(a=algebra_vectors(max_norm=3.1), b=algebra_vectors(max_norm=3.1))
+def test_changes_round_relative_to_the_change(a, b):
+    """exp(u) − 1 and cay(u) − 1 without the identity added in: their error is
+    relative to their own size (float64 differences of the float128-free
+    forms: the difference of the elements, accurate where u is not tiny, and
+    the first-order terms where it is); the product change is q·(g − 1)."""
+    u = jnp.asarray(a)
+    t = float(np.linalg.norm(a))
+    first_order = {"exp": np.concatenate([[-t * t / 8], a / 2]), "cayley": np.concatenate([[-t * t / 8], a / 2])}
+    for name, change, element in (("exp", Q.exp_change(u), Q.exp(u)), ("cayley", Q.cayley_change(u), Q.cayley(u))):
+        if t < 1e-4:  # the second-order terms are below 1e-12 relative
+            _close(change, first_order[name], 1e-12 * max(t, 1e-300))
+        else:
+            _close(change, element.wxyz - IDENTITY, 1e-15)
+    g = Q.exp(jnp.asarray(b))
+    for side, product in (("right", g @ Q.exp(u)), ("left", Q.exp(u) @ g)):
+        _close(g.product_change(Q.exp_change(u), side).wxyz, product.wxyz - g.wxyz)
+
+
+@pytest.mark.parametrize("fn", ["exp", "log", "cayley", "cayley_inverse", "as_matrix"])
+def test_gradients_are_finite_and_right_at_the_identity(fn):
+    """At u = 0 (q = 1) and nearby, each map's derivative equals central
+    differences and is finite (the double-`where` branches)."""
+    maps = {
+        "exp": lambda u: Q.exp(u).wxyz,
+        "log": lambda u: Q(jnp.concatenate([jnp.sqrt(1 - jnp.sum(u * u, keepdims=True)), u])).log(),
+        "cayley": lambda u: Q.cayley(u).wxyz,
+        "cayley_inverse": lambda u: Q(jnp.concatenate([jnp.sqrt(1 - jnp.sum(u * u, keepdims=True)), u])).cayley_inverse(),
+        "as_matrix": lambda u: Q.exp(u).as_matrix(),
+    }
+    f = maps[fn]
+    for point in (jnp.zeros(3), jnp.asarray([1e-6, -2e-6, 3e-7]), jnp.asarray([0.3, -0.2, 0.1])):
+        jacobian = jax.jacfwd(f)(point)
+        assert np.all(np.isfinite(jacobian))
+        _close(jacobian, central_differences(f, point, 1e-5), 1e-9)
+
+
+def test_the_double_cover():
+    """q and −q: the same rotation, the same log and Cayley coordinates; log
+    picks the representative with w ≥ 0, an angle in [0, π]."""
+    u = jnp.asarray([[0.3, -1.2, 2.9], [0.0, 0.0, 0.0], [1e-9, 0.0, 0.0]])
+    q = Q.exp(u)
+    minus = Q(-q.wxyz)
+    _close(minus.as_matrix(), q.as_matrix())
+    _close(minus.log(), q.log())
+    _close(minus.cayley_inverse(), q.cayley_inverse(), 1e-13)
+    _close(Q.exp(jnp.asarray([0.0, 0.0, 3.5])).log(), [0.0, 0.0, 3.5 - 2 * np.pi], 1e-14)  # turned past π: the shorter way round
+
+
+def test_renormalized_corrects_only_a_quaternion_that_drifted():
+    eps = float(jnp.finfo(jnp.float32).eps)
+    q = np.asarray(Q.exp(jnp.asarray([0.3, -1.2, 0.7])).wxyz)
+    batch = jnp.asarray(np.stack([q, q * (1 + 1000 * eps)]), jnp.float32)
+    after = Q(batch).renormalized().wxyz
+    np.testing.assert_array_equal(after[0], batch[0])
+    assert abs(float(jnp.sum(after[1] ** 2)) - 1) < 10 * eps
+    # The derivative is the normalization's either way.
+    direction = jnp.asarray(np.random.default_rng(0).normal(size=(2, 4)), jnp.float32)
+    _, derivative = jax.jvp(lambda x: Q(x).renormalized().wxyz, (batch,), (direction,))
+    _, expected = jax.jvp(lambda x: x * (1.5 - 0.5 * jnp.sum(x * x, -1, keepdims=True)), (batch,), (direction,))
+    _close(derivative, expected, 1e-6)
+
+
+# --- methods on quaternions compute what they compute on matrices ---------------------------
+FREE, TOP = FreeRigidBody, HeavyTop
+CASES = {  # name: (scene class, bundle, method of the scene, dt, steps)
+    "free body, SV, T*G, Exp": (FREE, pk.Cotangent, lambda s: s.method(pk.stormer_verlet), 0.1, 40),
+    "free body, Lobatto 4, G×g, Cayley": (FREE, pk.DirectProduct, lambda s: s.method(pk.lobatto_iiia_iiib4, pk.Cayley()), 0.1, 40),
+    "free body, RKMK 8, G⋉g left, Cayley": (
+        FREE,
+        lambda g: pk.Semidirect(g, "left"),
+        lambda s: s.method(pk.dormand_prince_8, pk.Cayley()),
+        0.2,
+        20,
+    ),
+    "free body, SV ∘ Kahan–Li 6": (
+        FREE,
+        pk.Cotangent,
+        lambda s: pk.Composition(s.method(pk.stormer_verlet), pk.kahan_li_6, assume_symmetric_base=True),
+        0.2,
+        20,
+    ),
+    "free body, exact flow": (FREE, pk.Cotangent, lambda s: s.exact_flow(), 0.5, 20),
+    "heavy top, symmetrised SE, T*G, Cayley": (
+        TOP,
+        pk.Cotangent,
+        lambda s: pk.Symmetrized(s.method(pk.symplectic_euler, pk.Cayley())),
+        0.05,
+        40,
+    ),
+    "heavy top, RKMK 4, G×g, Exp": (TOP, pk.DirectProduct, lambda s: s.method(pk.classical_rk4), 0.05, 40),
+}
+
+
+@pytest.mark.parametrize("name", CASES)
+def test_a_run_on_quaternions_is_the_run_on_matrices(name):
+    """The same attitudes (as matrices) and momenta to ≤ 1e-13; the
+    quaternion moves continuously (never to −q) and stays of norm 1."""
+    scene_class, bundle, make_method, dt, steps = CASES[name]
+    args = jnp.asarray(INERTIA) if scene_class is FREE else TOP_ARGS
+    rotation = jnp.asarray(random_rotation(4))
+    runs = {}
+    for group, base in ((S, S(rotation)), (Q, Q.from_matrix(rotation))):
+        scene = scene_class(bundle(group))
+        y0 = pk.BundleElement(base, jnp.asarray([0.3, -0.4, 1.5]))
+        runs[group] = pk.integrate(make_method(scene), scene, y0, 0.0, dt, steps, args).ys
+    on_matrices, on_quaternions = runs[S], runs[Q]
+    _close(on_quaternions.base.as_matrix(), on_matrices.base.matrix, 1e-13)
+    _close(on_quaternions.fiber, on_matrices.fiber, 1e-13)
+    q = np.asarray(on_quaternions.base.wxyz)
+    assert np.all(np.sum(q[1:] * q[:-1], axis=-1) > 0)
+    _close(np.sum(q * q, axis=-1), 1.0, 1e-14)
+
+
+def test_a_gradient_through_a_quaternion_run_is_the_matrix_runs():
+    """d/dΠ₀ and d/dI of a loss on the final attitude and momentum: the
+    quaternion run's, rebuilt backwards (`ReversibleGradient`), equals the
+    matrix run's from stored steps."""
+    rotation = jnp.asarray(random_rotation(5))
+
+    def loss(group, gradient):
+        scene = FreeRigidBody(pk.Cotangent(group))
+        base = S(rotation) if group is S else Q.from_matrix(rotation)
+
+        def of(momentum, inertia):
+            y0 = pk.BundleElement(base, momentum)
+            y = pk.integrate(scene.method(pk.stormer_verlet), scene, y0, 0.0, 0.1, 30, inertia, gradient=gradient)
+            final = jax.tree.map(lambda a: a[-1], y.ys)
+            return jnp.sum(rotation_matrix(final.base)[:, 0] * jnp.asarray([0.2, -0.5, 0.9])) + jnp.sum(final.fiber**2)
+
+        return jax.grad(of, argnums=(0, 1))(jnp.asarray([0.3, -0.4, 1.5]), jnp.asarray(INERTIA))
+
+    for a, b in zip(loss(Q, pk.ReversibleGradient()), loss(S, pk.StoredSteps())):
+        _close(a, b, 1e-12)
