@@ -111,6 +111,30 @@ def _jacobi(u: Array, m: Array, m1: Array) -> tuple[Array, Array, Array, Array]:
     return sn, cn, dn, am
 
 
+def _reduced_jacobi(u: Array, m: Array, m1: Array) -> tuple[Array, Array, Array, Array]:
+    """u = 2jK + r with |r| ≤ K: (j, sn r, cn r ≥ 0, dn r), for 0 ≤ m < 1.
+
+    Each to a few ulps *relative*, cn r and dn r too where they are small:
+    `_jacobi` gives cn = cos φ of an amplitude φ that rounds to an absolute
+    error of an ulp of φ, which is much of cn near a quarter turn (cn r →
+    0) when 1 − m is small. Past half a quarter period, |r| > K/2, the
+    functions come from v = K − |r| instead: sn(K − v) = cn v/dn v,
+    cn(K − v) = k′ sn v/dn v, dn(K − v) = k′/dn v (k′ = √m1), where v's
+    amplitude is at most am(K/2) and cn v at least √(k′/(1 + k′)): the
+    relative error is then at most about ε/√k′ (ε the machine epsilon)."""
+    quarter = _ellipk(m1)  # ∞ at m = 1: then j = 0, r = u and the near branch
+    u, m, m1, quarter = jnp.broadcast_arrays(u, m, m1, quarter)
+    j = jnp.round(u / (2 * quarter))
+    r = jnp.where(j == 0, u, u - 2 * j * quarter)
+    far = jnp.abs(r) > quarter / 2
+    sn_v, cn_v, dn_v, _ = _jacobi(jnp.where(far, quarter - jnp.abs(r), r), m, m1)
+    k1 = jnp.sqrt(m1)
+    sn = jnp.where(far, jnp.sign(r) * cn_v / dn_v, sn_v)
+    cn = jnp.where(far, k1 * sn_v / dn_v, cn_v)
+    dn = jnp.where(far, k1 / dn_v, dn_v)
+    return j, sn, cn, dn
+
+
 # --- Carlson's symmetric integrals -------------------------------------------------
 
 
@@ -270,3 +294,59 @@ def _ellippi_jvp(primals, tangents):
     frozen = jax.lax.stop_gradient(phi)
     value, d_params = jax.jvp(lambda n, m, m1: _ellippi_value(n, frozen, m, m1), (n, m, m1), (d_n, d_m, d_m1))
     return value, d_params + d_phi / ((1 - n * s2) * jnp.sqrt(jnp.cos(phi) ** 2 + m1 * s2))
+
+
+def _incomplete_pair(n: Array, j: Array, s: Array, c: Array, dn: Array, m1: Array) -> tuple[Array, Array]:
+    """(F(φ | m), Π(n; φ | m)) at the amplitude φ = jπ + φ_r with sin φ_r =
+    s, cos φ_r = c ≥ 0 and Δ(φ) = dn, each given to its own relative
+    accuracy (`_reduced_jacobi`), not recomputed from φ."""
+    ones = jnp.ones_like(s)
+    c2, d2, s2 = c * c, dn * dn, s * s
+    first = s * carlson_rf(c2, d2, ones)
+    third = first + n / 3 * s * s2 * carlson_rj(c2, d2, ones, 1 - n * s2)
+    complete_first = _ellipk(m1)
+    complete_third = complete_first + n / 3 * carlson_rj(0 * ones, m1 * ones, ones, 1 - n)
+    within = j == 0  # the complete integrals, ∞ at m = 1, are not read there
+    return jnp.where(within, first, first + 2 * j * complete_first), jnp.where(within, third, third + 2 * j * complete_third)
+
+
+@jax.custom_jvp
+def _third_kind_of_u(n: Array, u: Array, m: Array, m1: Array, reduced: tuple[Array, Array, Array, Array]) -> Array:
+    """∫₀^u du′/(1 − n sn²(u′ | m)) = Π(n; am u | m), 0 ≤ m < 1, n < 1, from
+    `reduced` = `_reduced_jacobi(u, m, m1)` (which the caller has).
+
+    The integrand is bounded, so this is a well-conditioned function of u;
+    written through the amplitude, Π(n; φ)'s derivative 1/((1 − n sin²φ)Δ)
+    would magnify φ's rounding near a quarter turn with 1 − m small by 1/Δ.
+    Here sn, cn, dn of u come with their own relative accuracy, and the
+    derivative in u is the integrand. The first kind's part is u itself
+    (F(am u) = u): in Carlson's form, s·R_F(c², Δ², 1), it would grow like
+    ln(1/(c + Δ)) near a quarter turn and turn the rounding of c and Δ
+    (their parameter 1 − m, when that is a small difference) into an
+    absolute error; what is left, (n/3) s³ R_J, carries the same logarithm
+    with the factor n/(1 − n s²) only. `reduced`'s tangents are not read:
+    they are u's and the parameters', which the derivative accounts for."""
+    j, s, c, dn = reduced
+    ones = jnp.ones_like(s)
+    s2 = s * s
+    partial = s * s2 * carlson_rj(c * c, dn * dn, ones, 1 - n * s2)
+    complete = carlson_rj(0 * ones, m1 * ones, ones, 1 - n)
+    # Π(n; jπ + φ_r) = 2jΠ(n) + Π(n; φ_r), with Π = F + (n/3)·s³R_J and 2jK + F(φ_r) = u.
+    return u + n / 3 * jnp.where(j == 0, partial, partial + 2 * j * complete)
+
+
+@_third_kind_of_u.defjvp
+def _third_kind_of_u_jvp(primals, tangents):
+    # In the parameters at fixed u: Π(n; am u)'s partials at fixed φ, plus
+    # ∂Π/∂φ · ∂am/∂m1 at fixed u, where ∂am/∂m1 = −Δ ∂F/∂m1 (from F(am u) = u)
+    # and ∂Π/∂φ = 1/((1 − n sin²φ)Δ): no division by Δ is left.
+    n, u, m, m1, reduced = primals
+    d_n, d_u, _, d_m1, _ = tangents
+    j, s, c, _ = (jax.lax.stop_gradient(x) for x in reduced)
+    integrand = 1 / (1 - n * s * s)
+
+    def pair(n, m1):
+        return _incomplete_pair(n, j, s, c, jnp.sqrt(c * c + m1 * s * s), m1)
+
+    _, (d_first, d_third) = jax.jvp(pair, (n, m1), (d_n, d_m1))
+    return _third_kind_of_u(n, u, m, m1, reduced), d_third - d_first * integrand + d_u * integrand

@@ -42,6 +42,11 @@ CASES = {  # name: (inertia, momentum)
     "a zero component": (np.array([0.5, 0.75, 1.0]), np.array([0.0, 0.5, 0.9])),
     "near the separatrix, inside": (np.array([0.5, 0.75, 1.0]), _separatrix_momentum(np.array([0.5, 0.75, 1.0]), 1e-6)),
     "near the separatrix, outside": (np.array([1.0, 0.75, 0.5]), _separatrix_momentum(np.array([1.0, 0.75, 0.5]), -1e-6)),
+    # Π stays near the middle axis for T = 10 while its amplitude sits near a
+    # quarter turn with 1 − k² ≈ 1e-12 and 1e-18: the attitude's integrals
+    # are evaluated where an amplitude's rounding would be magnified by 1/k′.
+    "near the middle axis (1e-6)": (np.array([0.5, 0.75, 1.0]), np.array([1e-6, 0.9, 0.7e-6])),
+    "near the middle axis (1e-9)": (np.array([1.0, 0.75, 0.5]), np.array([-0.7e-9, 0.9, 1e-9])),
 }
 
 

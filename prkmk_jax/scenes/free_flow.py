@@ -36,11 +36,18 @@ steadily about its d axis (A_c = A_s = 0) turns by |Π|h/I_d, and the
 symmetric bodies (two equal moments: k² = 0, sn = sin) and the sphere are
 the same formulas. Differentiable in (Q, Π, I, h).
 
-**Accuracy.** Π to round-off everywhere. The attitude to round-off except
-near the separatrix, where the amplitude φ sits near a quarter turn while
-1 − k² is small and the integrals' sensitivity to φ, 1/√(cos²φ + (1 − k²)
-sin²φ), magnifies φ's rounding: a momentum 1e-6 (relative) off the middle
-axis gives attitude errors near 1e-10 over T = 10, 1e-9 off near 1e-7.
+**Accuracy.** Both integrals are evaluated as functions of u, not of the
+amplitude φ (`elliptic._third_kind_of_u`): their integrands in u are
+bounded, where Π(n; φ)'s sensitivity to φ, 1/((1 − n sin²φ)Δ), grows without
+bound near a quarter turn as 1 − k² → 0 and magnified φ's rounding; sn, cn
+and dn come with their own relative accuracy (`elliptic._reduced_jacobi`).
+So a body near its middle axis (the Dzhanibekov spin: φ near a quarter turn,
+1 − k² of the order of the squared offset) keeps its attitude to round-off.
+Closer to the separatrix |Π|² = 2H·I_mid than about 1e-10 (relative), the
+flow itself is ill-conditioned (over T = 100 an ulp of Π moves the exact
+attitude by up to 1e-3), and 1 − k², a difference of the state's terms,
+rounds in proportion: the errors there are those of the problem, not of
+this evaluation (`tests/test_exact_flow.py`, design notes).
 """
 
 import functools
@@ -191,8 +198,13 @@ def _moving_flow(q: Array, pi: Array, inertia: Array, h: Array) -> tuple[Array, 
     sigma = jnp.where(cyclic, 1.0, -1.0) * sign_d * jnp.sign(i_d - i_c)
     phi0 = jnp.arctan2(p_s / a_s, p_c / a_c)
     u0 = elliptic._ellipf(phi0, k2, k2c)
-    sn, cn, dn, phi1 = elliptic._jacobi(u0 + sigma * lam * h, k2, k2c)
-    new_c, new_s, new_d = a_c * cn, a_s * sn, sign_d * a_d * dn
+    # sn, cn, dn at both ends, u = 2jK + r, from r's: each to its own
+    # relative accuracy (one evaluation for the two ends).
+    ends = jnp.stack(jnp.broadcast_arrays(u0, u0 + sigma * lam * h))
+    reduced = elliptic._reduced_jacobi(ends, k2, k2c)
+    turns, sine, cosine, delta = reduced
+    parity = 1 - 2 * jnp.abs(turns[1] % 2)  # (−1)^j
+    new_c, new_s, new_d = a_c * parity * cosine[1], a_s * parity * sine[1], sign_d * a_d * delta[1]
     axes = jnp.arange(3)
     pi_next = sum(jnp.where(axes == axis[..., None], value[..., None], 0.0) for axis, value in ((c, new_c), (s, new_s), (d, new_d)))
     pi_next = jnp.where(moving[..., None], pi_next, pi)
@@ -200,14 +212,11 @@ def _moving_flow(q: Array, pi: Array, inertia: Array, h: Array) -> tuple[Array, 
     # The turn ψ about e.
     n = 1 - a_s2 / a_c2
 
-    def theta(phi):
-        turns, sine, cosine = elliptic._quarter_turns(phi)
-        return jnp.arctan2(a_s * sine, a_c * cosine) + turns * jnp.pi
-
-    # Both ends in one evaluation of each integral (one program, not two).
-    ends = jnp.stack(jnp.broadcast_arrays(phi0, phi1))
-    third = elliptic._ellippi(n, ends, k2, k2c)
-    bracket = mu / a_c2 * (third[1] - third[0]) - a_d / (a_c * a_s) * (theta(ends[1]) - theta(ends[0]))
+    # Θ(am u) = jπ + atan2(A_s sn r, A_c cn r) and the third kind at both
+    # ends, as functions of u.
+    theta = jnp.arctan2(a_s * sine, a_c * cosine) + turns * jnp.pi
+    third = elliptic._third_kind_of_u(n, ends, k2, k2c, reduced)
+    bracket = mu / a_c2 * (third[1] - third[0]) - a_d / (a_c * a_s) * (theta[1] - theta[0])
     psi = mu * h / i_d + jnp.where(moving, g / (sigma * lam) * bracket, 0.0)
 
     e = sign_d[..., None] * jnp.where(axes == d[..., None], 1.0, 0.0).astype(dtype)
