@@ -28,6 +28,7 @@ import numpy as np
 import prkmk_jax as pk
 from prkmk_jax.scenes import FreeRigidBody
 from prkmk_jax.scenes import rigid_body as rb
+from prkmk_jax.scenes.base import rotation_matrix
 
 INERTIA = np.asarray(rb.PAPER_INERTIA)
 MOMENTUM = np.asarray(rb.PAPER_MOMENTUM)
@@ -94,10 +95,10 @@ def integrate_final(method, steps, h, gradient=pk.StoredSteps(), scene=SCENE):
     body `scene` (T*SO(3) unless given; differentiated by `gradient`,
     `integrate`'s argument)."""
 
-    def run(q0, pi0, inertia):
-        y0 = pk.BundleElement(pk.SO3(q0), pi0)
+    def run(q0, pi0, inertia):  # the attitude a matrix, or the scene's quaternion in and out
+        y0 = pk.BundleElement(pk.UnitQuaternion.from_matrix(q0) if scene.bundle.base is pk.UnitQuaternion else pk.SO3(q0), pi0)
         traj = pk.integrate(method, scene, y0, 0.0, h, steps, inertia, save_every=steps, gradient=gradient)
-        return traj.ys.base.matrix[-1], traj.ys.fiber[-1], traj.stats["num_iterations"]
+        return rotation_matrix(traj.ys.base)[-1], traj.ys.fiber[-1], traj.stats["num_iterations"]
 
     return run
 

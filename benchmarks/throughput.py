@@ -4,7 +4,8 @@
    PRKMK Störmer–Verlet (T*SO(3), body form, exp) through `lax.scan`
    (`prkmk_jax.integrate`) and through `diffeqsolve`, in float64 and
    float32, diffrax Tsit5 with constant steps on the embedding ℝ⁹×ℝ³, and
-   for the cost of a step beside it, RKMK 8 (Cayley) and the exact flow.
+   for the cost of a step beside it, RKMK 8 (Cayley) and the exact flow;
+   SV and RKMK 8 again with the attitude a unit quaternion.
    The step count per run shrinks with the batch so every run does a
    similar amount of work; all run in alternation (7 rounds; medians,
    and the median per-round ratio to Tsit5); also reported: implicit
@@ -47,10 +48,11 @@ import prkmk_jax as pk
 from prkmk_jax.scenes import FreeRigidBody
 
 H = 0.01
+QUATERNIONS = FreeRigidBody(pk.Cotangent(pk.UnitQuaternion))  # the attitude as a unit quaternion
 
 
-def _scan(method, steps):
-    final = C.integrate_final(method, steps, H)
+def _scan(method, steps, scene=C.SCENE):
+    final = C.integrate_final(method, steps, H, scene=scene)
 
     def run(q0, pi0, inertia):
         _, pi, iterations = final(q0, pi0, inertia)
@@ -91,6 +93,11 @@ def throughput(quick, rounds):
             "diffrax Tsit5 (embedding)": (jnp.float64, _tsit5(steps)),
             "PRKMK DP8 Cayley scan": (jnp.float64, _scan(C.SCENE.method(pk.dormand_prince_8, pk.Cayley()), steps)),
             "exact flow scan": (jnp.float64, _scan(C.SCENE.exact_flow(), steps)),
+            "PRKMK SV scan, quaternion": (jnp.float64, _scan(QUATERNIONS.method(pk.stormer_verlet), steps, QUATERNIONS)),
+            "PRKMK DP8 Cayley scan, quaternion": (
+                jnp.float64,
+                _scan(QUATERNIONS.method(pk.dormand_prince_8, pk.Cayley()), steps, QUATERNIONS),
+            ),
         }
         compiled, compile_s, iterations, args_of = {}, {}, {}, {}
         for name, (dtype, run) in columns.items():
