@@ -10,10 +10,10 @@ so a method run on quaternions computes the same attitudes as on rotation
 matrices, with a quaternion's product and rounding.
 
 The Cayley map is SO(3)'s lifted: cay(u) = (2, u)/√(4 + θ²), whose rotation
-matrix is (I − û/2)⁻¹(I + û/2). (The quaternion algebra's own Cayley
-transform (1 − ũ/2)⁻¹(1 + ũ/2) of the pure quaternion ũ = (0, u/2) is
-another map, with tan(θ/4) where this has tan(θ/2); SO(3)'s is the one whose
-inverse differential `dcayley_inv` the methods use.)
+matrix is (I − û/2)⁻¹(I + û/2), a turn by φ with tan(φ/2) = |u|/2. (The
+quaternion algebra's own Cayley transform (1 − ũ/2)⁻¹(1 + ũ/2) of the pure
+quaternion ũ = (0, u/2) is another map, a turn with tan(φ/4) = |u|/4; SO(3)'s
+is the one whose inverse differential `dcayley_inv` the methods use.)
 
 A run's quaternion moves continuously, q_{n+1} = q_n·exp(·) or q_n·cay(·):
 it never jumps to −q, so dense output and gradients along a run are smooth;
