@@ -269,20 +269,28 @@ def _ellippi(n: Array, phi: Array, m: Array, m1: Array) -> Array:
     return _ellippi_value(n, phi, m, m1)
 
 
-def _ellippi_reduced(n, s, c2, s2, m1):
+def _parameters_ones(n: Array, m1: Array, dtype) -> Array:
+    """Ones at the parameters' shape, where a complete integral is computed:
+    amplitudes stacked on a leading axis (several ends of one interval)
+    share it."""
+    return jnp.ones(jnp.broadcast_shapes(jnp.shape(n), jnp.shape(m1)), dtype)
+
+
+def _reduced_pair(n, s, c2, s2, m1):
+    """(F(φ_r), Π(n; φ_r)) of a reduced amplitude, |φ_r| ≤ π/2, from its sine
+    s, cos²φ_r = c2 and sin²φ_r = s2."""
     delta2 = c2 + m1 * s2
     ones = jnp.ones_like(s)
-    return s * carlson_rf(c2, delta2, ones) + n / 3 * s * s2 * carlson_rj(c2, delta2, ones, 1 - n * s2)
+    first = s * carlson_rf(c2, delta2, ones)
+    return first, first + n / 3 * s * s2 * carlson_rj(c2, delta2, ones, 1 - n * s2)
 
 
 def _ellippi_value(n, phi, m, m1):
     del m  # read through m1
     j, s, c = _quarter_turns(phi)
-    reduced = _ellippi_reduced(n, s, c * c, s * s, m1)
-    # The complete integral at the parameters' shape: amplitudes stacked on
-    # a leading axis (several ends of one interval) share it.
-    ones = jnp.ones(jnp.broadcast_shapes(jnp.shape(n), jnp.shape(m1)), reduced.dtype)
-    complete = _ellippi_reduced(n, ones, 0 * ones, ones, m1)
+    reduced = _reduced_pair(n, s, c * c, s * s, m1)[1]
+    ones = _parameters_ones(n, m1, reduced.dtype)
+    complete = _reduced_pair(n, ones, 0 * ones, ones, m1)[1]
     return jnp.where(j == 0, reduced, reduced + 2 * j * complete)
 
 
@@ -296,16 +304,13 @@ def _ellippi_jvp(primals, tangents):
     return value, d_params + d_phi / ((1 - n * s2) * jnp.sqrt(jnp.cos(phi) ** 2 + m1 * s2))
 
 
-def _incomplete_pair(n: Array, j: Array, s: Array, c: Array, dn: Array, m1: Array) -> tuple[Array, Array]:
+def _incomplete_pair(n: Array, j: Array, s: Array, c: Array, m1: Array) -> tuple[Array, Array]:
     """(F(φ | m), Π(n; φ | m)) at the amplitude φ = jπ + φ_r with sin φ_r =
-    s, cos φ_r = c ≥ 0 and Δ(φ) = dn, each given to its own relative
-    accuracy (`_reduced_jacobi`), not recomputed from φ."""
-    ones = jnp.ones_like(s)
-    c2, d2, s2 = c * c, dn * dn, s * s
-    first = s * carlson_rf(c2, d2, ones)
-    third = first + n / 3 * s * s2 * carlson_rj(c2, d2, ones, 1 - n * s2)
-    complete_first = _ellipk(m1)
-    complete_third = complete_first + n / 3 * carlson_rj(0 * ones, m1 * ones, ones, 1 - n)
+    s and cos φ_r = c ≥ 0 as given (`_reduced_jacobi`'s), not recomputed
+    from φ."""
+    first, third = _reduced_pair(n, s, c * c, s * s, m1)
+    ones = _parameters_ones(n, m1, s.dtype)
+    complete_first, complete_third = _reduced_pair(n, ones, 0 * ones, ones, m1)
     within = j == 0  # the complete integrals, ∞ at m = 1, are not read there
     return jnp.where(within, first, first + 2 * j * complete_first), jnp.where(within, third, third + 2 * j * complete_third)
 
@@ -327,9 +332,9 @@ def _third_kind_of_u(n: Array, u: Array, m: Array, m1: Array, reduced: tuple[Arr
     with the factor n/(1 − n s²) only. `reduced`'s tangents are not read:
     they are u's and the parameters', which the derivative accounts for."""
     j, s, c, dn = reduced
-    ones = jnp.ones_like(s)
     s2 = s * s
-    partial = s * s2 * carlson_rj(c * c, dn * dn, ones, 1 - n * s2)
+    partial = s * s2 * carlson_rj(c * c, dn * dn, jnp.ones_like(s), 1 - n * s2)
+    ones = _parameters_ones(n, m1, s.dtype)
     complete = carlson_rj(0 * ones, m1 * ones, ones, 1 - n)
     # Π(n; jπ + φ_r) = 2jΠ(n) + Π(n; φ_r), with Π = F + (n/3)·s³R_J and 2jK + F(φ_r) = u.
     return u + n / 3 * jnp.where(j == 0, partial, partial + 2 * j * complete)
@@ -345,8 +350,5 @@ def _third_kind_of_u_jvp(primals, tangents):
     j, s, c, _ = (jax.lax.stop_gradient(x) for x in reduced)
     integrand = 1 / (1 - n * s * s)
 
-    def pair(n, m1):
-        return _incomplete_pair(n, j, s, c, jnp.sqrt(c * c + m1 * s * s), m1)
-
-    _, (d_first, d_third) = jax.jvp(pair, (n, m1), (d_n, d_m1))
+    _, (d_first, d_third) = jax.jvp(lambda n, m1: _incomplete_pair(n, j, s, c, m1), (n, m1), (d_n, d_m1))
     return _third_kind_of_u(n, u, m, m1, reduced), d_third - d_first * integrand + d_u * integrand

@@ -41,6 +41,7 @@ from .._fields import Time
 from ..compositions import CompositionCoefficients
 from ..coordinates import AbstractCoordinates, Exp
 from ..exact_flows import AbstractSplitScene, FreePart, renormalized_rotations
+from ..groups import UnitQuaternion
 from ..groups._util import LOW_PRECISION_EPS, is_low_precision
 from ..groups.trig import computed_once
 from .base import RESULTS, AbstractOfOneScene, Step, check_parts, differentiated_as, flag_nonfinite, fractions_and_starts
@@ -126,6 +127,11 @@ class Splitting(AbstractOfOneScene):
             raise TypeError(
                 f"Splitting needs a scene that splits into exactly solvable parts (an AbstractSplitScene such as FreeRigidBody), "
                 f"got {type(self.scene).__name__}; for other fields use a PRKMK method."
+            )
+        if self.scene.bundle.base is UnitQuaternion:
+            raise TypeError(
+                f"{type(self.scene).__name__} on UnitQuaternion does not split: the splittings turn the columns of a rotation matrix; "
+                "use a PRKMK method (`scene.method(...)`), or the free body's `exact_flow()`, or the scene on SO3."
             )
         if self.coefficients is not None:
             if not isinstance(self.coefficients, CompositionCoefficients):

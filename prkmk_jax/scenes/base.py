@@ -114,11 +114,6 @@ class AbstractScene(AbstractFieldOnBundle):
         with `coefficients`, of their order, its kinetic energy split into
         axis terms or taken whole (`free_part`); `TypeError` for a scene that
         does not split."""
-        if self.bundle.base is UnitQuaternion:
-            raise TypeError(
-                f"{type(self).__name__} on UnitQuaternion does not split: the splittings turn the columns of a rotation matrix; "
-                "use a PRKMK method (`method(...)`), or the free body's `exact_flow()`, or the scene on SO3."
-            )
         coordinates = Exp() if coordinates is None else coordinates
         # Splitting checks the scene's type itself, with its own message.
         return Splitting(scene=self, coefficients=coefficients, coordinates=coordinates, free_part=free_part)  # pyright: ignore[reportCallIssue, reportArgumentType]  # equinox: AbstractVars implemented by properties are not __init__ fields
