@@ -28,7 +28,7 @@ import numpy as np
 import prkmk_jax as pk
 from prkmk_jax.scenes import FreeRigidBody
 from prkmk_jax.scenes import rigid_body as rb
-from prkmk_jax.scenes.base import rotation_matrix
+from prkmk_jax.scenes.base import attitude_of, rotation_matrix
 
 INERTIA = np.asarray(rb.PAPER_INERTIA)
 MOMENTUM = np.asarray(rb.PAPER_MOMENTUM)
@@ -96,7 +96,7 @@ def integrate_final(method, steps, h, gradient=pk.StoredSteps(), scene=SCENE):
     `integrate`'s argument)."""
 
     def run(q0, pi0, inertia):  # the attitude a matrix, or the scene's quaternion in and out
-        y0 = pk.BundleElement(pk.UnitQuaternion.from_matrix(q0) if scene.bundle.base is pk.UnitQuaternion else pk.SO3(q0), pi0)
+        y0 = pk.BundleElement(attitude_of(q0, scene.bundle.base), pi0)
         traj = pk.integrate(method, scene, y0, 0.0, h, steps, inertia, save_every=steps, gradient=gradient)
         return rotation_matrix(traj.ys.base)[-1], traj.ys.fiber[-1], traj.stats["num_iterations"]
 

@@ -9,6 +9,7 @@ import numpy as np
 
 import prkmk_jax as pk
 from prkmk_jax.scenes import ForcedParameters, FreeRigidBody, HarmonicTorque, SymmetricRigidBody, TopParameters
+from prkmk_jax.scenes.base import attitude_of
 from prkmk_jax.scenes.rigid_body import random_rotation, symmetric_initial_state
 
 INERTIA = np.array([7 / 8, 5 / 8, 1 / 4])
@@ -60,9 +61,7 @@ def initial_state(bundle, seed=0, m0=M0):
     q0 = random_rotation(seed)
     if isinstance(bundle, pk.Cartesian):
         return symmetric_initial_state(q0, m0)  # P₀ = Q₀ exp(sinh⁻¹(M₀/2))
-    if bundle.base is pk.UnitQuaternion:
-        return pk.BundleElement(pk.UnitQuaternion.from_matrix(jnp.asarray(q0)), jnp.asarray(m0))
-    return pk.BundleElement(pk.SO3(jnp.asarray(q0)), jnp.asarray(m0))
+    return pk.BundleElement(attitude_of(jnp.asarray(q0), bundle.base), jnp.asarray(m0))
 
 
 def state_vector(bundle, y) -> np.ndarray:

@@ -235,11 +235,16 @@ def derived_embedding_field(scene: AbstractScene, t: Time, z: Float[Array, " d"]
     return jax.jvp(moved, (zero,), (jnp.ones_like(zero),))[1]
 
 
+def attitude_of(matrix: Array, attitude: type[AbstractLieGroup] = SO3) -> SO3 | UnitQuaternion:
+    """A rotation matrix as an `SO3`, or, for `attitude` = `UnitQuaternion`,
+    as its quaternion with w ≥ 0."""
+    return UnitQuaternion.from_matrix(matrix) if attitude is UnitQuaternion else SO3(matrix)
+
+
 def rotation_and_vector_state(z: Float[Array, "*batch 12"], attitude: type[AbstractLieGroup] = SO3) -> BundleElement:
-    """`rotation_and_vector_embedding`'s inverse: (Q, v), Q an `SO3` or the
-    `UnitQuaternion` (w ≥ 0) of its matrix."""
-    matrix = z[..., :9].reshape(*z.shape[:-1], 3, 3)
-    return BundleElement(UnitQuaternion.from_matrix(matrix) if attitude is UnitQuaternion else SO3(matrix), z[..., 9:])
+    """`rotation_and_vector_embedding`'s inverse: (Q, v), Q in the
+    representation `attitude` (`attitude_of`)."""
+    return BundleElement(attitude_of(z[..., :9].reshape(*z.shape[:-1], 3, 3), attitude), z[..., 9:])
 
 
 def rotation_and_vector_embedding(y: BundleElement) -> Float[Array, "*batch 12"]:
