@@ -185,8 +185,9 @@ class AbstractExactFlow(eqx.Module):
 
 class AxisRotation(AbstractExactFlow):
     """The flow of one axis term of a kinetic energy: every pair of rows in
-    `pairs` turns by the angle h·`rate`(z, args), which this flow leaves
-    constant (so the flow is exact for `Exp`, see the module docstring)."""
+    `pairs` turns by the angle θ = h·`rate`(z, args), which this flow leaves
+    constant (so the flow is exact for `Exp`, see the module docstring), and
+    every pair in `half_pairs` by θ/2 (a unit quaternion's components)."""
 
     always_materialised: ClassVar[bool] = False  # pyright: ignore[reportIncompatibleVariableOverride]  # its sine and cosine are computed once
     axis: int = eqx.field(static=True)
@@ -199,6 +200,10 @@ class AxisRotation(AbstractExactFlow):
     rate_reads_turned_rows: bool = eqx.field(static=True, default=False)
     """Whether `rate` reads rows in `pairs` (its value is still constant
     along the flow, as for a body whose rate is a component of QᵀP − PᵀQ)."""
+    half_pairs: tuple[tuple[int, int], ...] = eqx.field(static=True, default=())
+    """Row pairs that turn by half the angle: a unit quaternion q ↦ q·r, r
+    = cos θ/2 + sin θ/2·e, turns (q_axis, w) and the other two components
+    so (`body_frame`)."""
 
     @property
     def reads_unmoved_rows_only(self) -> bool:
@@ -211,40 +216,62 @@ class AxisRotation(AbstractExactFlow):
     def coefficients(self, coordinates, t, z, h, args):
         """(sin, cos) of the planar rotation that the coordinate map gives the
         angle h·rate about the axis (`AbstractCoordinates.planar_rotation`):
-        the exponential turns by that angle, the Cayley map by 2·atan(angle/2)."""
-        return coordinates.planar_rotation(h * self.rate(z, args))
+        the exponential turns by that angle, the Cayley map by 2·atan(angle/2).
+        With `half_pairs`, (sin, cos, sin θ/2, cos θ/2): the half turn's from
+        the map (`planar_half_rotation`), the whole turn's from it by the
+        double angle, so that a sub-step evaluates one sine and cosine.
+        (Evaluated apart, the whole turn would be the matrix's bit for bit:
+        a second evaluation each sub-step, and no more accurate.)"""
+        angle = h * self.rate(z, args)
+        if not self.half_pairs:
+            return coordinates.planar_rotation(angle)
+        half_sine, half_cosine = coordinates.planar_half_rotation(angle)
+        sine, cosine = computed_once(2 * half_sine * half_cosine, (half_cosine - half_sine) * (half_cosine + half_sine))
+        return sine, cosine, half_sine, half_cosine
+
+    def _turns(self, coefficients) -> tuple[tuple[tuple[tuple[int, int], ...], Array, Array], ...]:
+        """(pairs, sine, cosine) for the whole turn and, with `half_pairs`, the half turn."""
+        turns = ((self.pairs, coefficients[0], coefficients[1]),)
+        return turns + (((self.half_pairs, coefficients[2], coefficients[3]),) if self.half_pairs else ())
 
     def moved(self, z, coefficients):
-        sine, cosine = coefficients
-        if is_low_precision(z.dtype):
-            # Rounded, the matrix scales the rows by √(c² + s²) ≠ 1, much the
-            # same factor step after step (`PlanarTurn`); the shears do not.
-            return turned_rows(z, self.pairs, turn_of(sine, cosine))
-        return rotated_rows(z, self.pairs, sine, cosine)
+        for pairs, sine, cosine in self._turns(coefficients):
+            if is_low_precision(z.dtype):
+                # Rounded, the matrix scales the rows by √(c² + s²) ≠ 1, much the
+                # same factor step after step (`PlanarTurn`); the shears do not.
+                z = turned_rows(z, pairs, turn_of(sine, cosine))
+            else:
+                z = rotated_rows(z, pairs, sine, cosine)
+        return z
 
     def moved_change(self, start, change, coefficients):
         # (x, y) ↦ (x + (c − 1)x + s y, y + (c − 1)y − s x), with c − 1 =
         # −s²/(1 + c) where the cosine is near 1 and c − 1 itself elsewhere.
-        sine, cosine = coefficients
-        cosine_less_one = computed_once(jnp.where(cosine >= 0, -sine * sine / (1 + jnp.abs(cosine)), cosine - 1))
         rows = list(change)
-        for j, k in self.pairs:
-            x, y = start[j] + change[j], start[k] + change[k]
-            rows[j], rows[k] = change[j] + (cosine_less_one * x + sine * y), change[k] + (cosine_less_one * y - sine * x)
+        for pairs, sine, cosine in self._turns(coefficients):
+            cosine_less_one = computed_once(jnp.where(cosine >= 0, -sine * sine / (1 + jnp.abs(cosine)), cosine - 1))
+            for j, k in pairs:
+                x, y = start[j] + change[j], start[k] + change[k]
+                rows[j], rows[k] = change[j] + (cosine_less_one * x + sine * y), change[k] + (cosine_less_one * y - sine * x)
         return jnp.stack(rows)
 
     def moved_back(self, z, coefficients):
-        sine, cosine = coefficients
-        return rotated_array(z, self.pairs, -sine, cosine)
+        for pairs, sine, cosine in self._turns(coefficients):
+            z = rotated_array(z, pairs, -sine, cosine)
+        return z
 
     def pulled_back(self, z, coefficients, cotangent):
         # (a, b) ↦ (c a + s b, c b − s a) is a rotation: its transpose is the
         # inverse, and its derivatives in s and c read the rows it turns.
-        sine, cosine = coefficients
-        partner, sign, moved = _pair_tables(z, self.pairs)
-        cotangent_sine = jnp.sum(sign * cotangent * jnp.take(z, partner, axis=0), axis=0)
-        cotangent_cosine = jnp.sum(moved * cotangent * z, axis=0)
-        return rotated_array(cotangent, self.pairs, -sine, cosine), (cotangent_sine, cotangent_cosine)
+        # The turns move disjoint rows, so each is undone on its own rows.
+        cotangent_coefficients = []
+        for pairs, sine, cosine in self._turns(coefficients):
+            partner, sign, moved = _pair_tables(z, pairs)
+            cotangent_sine = jnp.sum(sign * cotangent * jnp.take(z, partner, axis=0), axis=0)
+            cotangent_coefficients += [cotangent_sine, jnp.sum(moved * cotangent * z, axis=0)]
+        for pairs, sine, cosine in self._turns(coefficients):
+            cotangent = rotated_array(cotangent, pairs, -sine, cosine)
+        return cotangent, tuple(cotangent_coefficients)
 
 
 class MomentumKick(AbstractExactFlow):
@@ -287,11 +314,6 @@ class AbstractSplitScene(AbstractFieldOnBundle):
     """A scene whose field is a sum of parts with exact flows: what a
     `Splitting` method needs of it."""
 
-    rotation_rows: eqx.AbstractClassVar[tuple[int, ...]]
-    """The first row of each 3×3 rotation matrix in the packed state (row-major
-    over nine rows; its columns may be relabelled): what `Splitting` moves back
-    onto SO(3) after each step in low precision (`renormalized_rotations`)."""
-
     @abc.abstractmethod
     def exact_flows(self, args: PyTree, /, free_part: FreePart = "axes") -> tuple[AbstractExactFlow, ...]:
         """The parts, outermost first: `Splitting` runs them as the palindrome
@@ -312,6 +334,13 @@ class AbstractSplitScene(AbstractFieldOnBundle):
     @abc.abstractmethod
     def unpack(self, z: Packed, like: BundleElement, args: PyTree, /) -> BundleElement:
         """Inverse of `pack`; `like` is a state of the same structure."""
+
+    @abc.abstractmethod
+    def onto_group(self, z: Packed, /) -> Packed:
+        """The packed state moved back onto the group where rounding has
+        taken it off (a rotation matrix by `renormalized_rotations`, a unit
+        quaternion towards norm 1), by a step whose derivative is that of
+        the projection: what `Splitting` applies after each low-precision step."""
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(1,))

@@ -220,11 +220,6 @@ STATIC = {
     # unit quaternions
     "UnitQuaternion of three numbers": (lambda: pk.UnitQuaternion(jnp.ones(3)), ValueError, r"\(\.\.\., 4\) array"),
     "UnitQuaternion of integers": (lambda: pk.UnitQuaternion(jnp.array([1, 0, 0, 0])), TypeError, "floating-point dtype"),
-    "splitting of a scene on UnitQuaternion": (
-        lambda: FreeRigidBody(pk.Cotangent(pk.UnitQuaternion)).splitting(),
-        TypeError,
-        "on UnitQuaternion does not split",
-    ),
     "symmetric body on UnitQuaternion": (lambda: SymmetricRigidBody(pk.Cartesian(pk.UnitQuaternion)), TypeError, "SymmetricRigidBody"),
     "splitting of the symmetric body on SO(4)": (
         lambda: _integrate(SO4_STATE, method=SYMMETRIC_SO4.splitting(), field=SYMMETRIC_SO4, args=jnp.ones(4)),

@@ -61,6 +61,7 @@ KINDS = {
     ),
     "PRKMK SV on unit quaternions": (QUATERNION_BODY, QUATERNION_BODY.method(pk.stormer_verlet), INERTIA),
     "Splitting, free body": (FREE, FREE.splitting(pk.suzuki_5), INERTIA),
+    "Splitting on unit quaternions": (QUATERNION_BODY, QUATERNION_BODY.splitting(), INERTIA),
     "Splitting, symmetric body": (SYMMETRIC, SYMMETRIC.splitting(), INERTIA),
 }
 

@@ -2,7 +2,8 @@
 map checked against `SO3`'s on sampled vectors, near-identity ones
 included), the changes round relative to the change, the double cover is
 handled, and every family of method on the free body and the heavy top
-computes on quaternions what it computes on rotation matrices."""
+computes on quaternions what it computes on rotation matrices, the
+splittings included."""
 
 import diffrax
 import jax
@@ -162,7 +163,19 @@ CASES = {  # name: (scene class, bundle, method of the scene, dt, steps)
         40,
     ),
     "heavy top, adjoint of Lobatto 4, T*G": (TOP, pk.Cotangent, lambda s: pk.Adjoint(s.method(pk.lobatto_iiia_iiib4)), 0.05, 40),
+    # The splittings: the axes ordered by an even permutation here (a
+    # right-handed frame), by an odd one for TOP_ARGS and INERTIA.
+    "free body, Kahan–Li 6 splitting, Cayley": (FREE, pk.Cotangent, lambda s: s.splitting(pk.kahan_li_6, pk.Cayley()), 0.2, 20),
+    "heavy top, Strang splitting with the exact free part, G×g": (
+        TOP,
+        pk.DirectProduct,
+        lambda s: s.splitting(free_part="exact"),
+        0.05,
+        40,
+    ),
+    "heavy top, Strang splitting, T*G": (TOP, pk.Cotangent, lambda s: s.splitting(), 0.05, 40),
 }
+ARGS = {"free body, Kahan–Li 6 splitting, Cayley": jnp.asarray([5 / 8, 7 / 8, 1 / 4])}
 
 
 @pytest.mark.parametrize("name", CASES)
@@ -170,7 +183,7 @@ def test_a_run_on_quaternions_is_the_run_on_matrices(name):
     """The same attitudes (as matrices) and momenta to ≤ 1e-13; the
     quaternion moves continuously (never to −q) and stays of norm 1."""
     scene_class, bundle, make_method, dt, steps = CASES[name]
-    args = jnp.asarray(INERTIA) if scene_class is FREE else TOP_ARGS
+    args = ARGS.get(name, jnp.asarray(INERTIA) if scene_class is FREE else TOP_ARGS)
     rotation = jnp.asarray(random_rotation(4))
     runs = {}
     for group, base in ((S, S(rotation)), (Q, Q.from_matrix(rotation))):

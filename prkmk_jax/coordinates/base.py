@@ -30,6 +30,7 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from ..groups.base import AbstractLieGroup, solve_in_algebra
+from ..groups.quaternion import UnitQuaternion
 from ..groups.so3 import SO3
 from ..groups.trig import computed_once
 
@@ -124,6 +125,15 @@ class AbstractCoordinates(eqx.Module):
         axis = jnp.zeros((3,), jnp.result_type(angle)).at[2].set(1.0)
         turned = cast(SO3, self.group_map(SO3, jnp.asarray(angle)[..., None] * axis)).matrix
         return computed_once(turned[..., 1, 0], turned[..., 0, 0])
+
+    def planar_half_rotation(self, angle: Array) -> tuple[Array, Array]:
+        """(sin θ/2, cos θ/2) for the turn θ of `planar_rotation(angle)`:
+        what a unit quaternion's components turn by (f(angle·E) on S³ is
+        cos θ/2 + sin θ/2·e). By default read off φ on `UnitQuaternion`
+        about the third axis; a map overrides it with a cheaper formula."""
+        axis = jnp.zeros((3,), jnp.result_type(angle)).at[2].set(1.0)
+        turned = cast(UnitQuaternion, self.group_map(UnitQuaternion, jnp.asarray(angle)[..., None] * axis)).wxyz
+        return computed_once(turned[..., 3], turned[..., 0])
 
     def truncated_inverse_differential(self, bracket, U: AlgebraPair, X: AlgebraPair, truncation: int) -> AlgebraPair:
         """df⁻¹_U(X) truncated at `truncation` (an int that

@@ -15,6 +15,7 @@ so(3) but not on so(n), n ≥ 4 (`paper_semidirect_dcayley_inv`).
 from typing import ClassVar
 
 import equinox as eqx
+import jax.numpy as jnp
 
 from ..groups.base import AbstractLieGroup, AbstractQuadraticGroup
 from ..groups.trig import computed_once
@@ -112,6 +113,15 @@ class Cayley(AbstractCoordinates):
         quarter = 0.25 * angle * angle
         scale = 1.0 / (1.0 + quarter)
         return computed_once(angle * scale, (1.0 - quarter) * scale)
+
+    def planar_half_rotation(self, angle):
+        # cay(aE) on S³ is (2 + a e)/√(4 + a²): cos θ/2 = 2/√(4 + a²), sin θ/2 = a/√(4 + a²).
+        # Two quotients by one r = √(4 + a²), as `UnitQuaternion.cayley`:
+        # written as 2/√(4 + a²) alone, XLA computes it by rsqrt, whose
+        # rounding is biased (about −0.1 ulp in s² + c²), and a long run of
+        # turns would add the bias up in |q|.
+        r = jnp.sqrt(4.0 + angle * angle)
+        return computed_once(angle / r, 2.0 / r)
 
     def truncated_inverse_differential(self, bracket, U, X, truncation):
         # The only truncation short of exact: dcay⁻¹ ≈ I.

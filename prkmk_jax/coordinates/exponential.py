@@ -59,5 +59,8 @@ class Exp(AbstractCoordinates):
     def planar_rotation(self, angle):
         return sincos(angle)
 
+    def planar_half_rotation(self, angle):
+        return sincos(0.5 * angle)
+
     def truncated_inverse_differential(self, bracket, U, X, truncation):
         return dexp_inv_series(bracket, U, X, truncation)

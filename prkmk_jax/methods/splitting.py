@@ -40,8 +40,7 @@ from .._exact_sums import two_sum
 from .._fields import Time
 from ..compositions import CompositionCoefficients
 from ..coordinates import AbstractCoordinates, Exp
-from ..exact_flows import AbstractSplitScene, FreePart, renormalized_rotations
-from ..groups import UnitQuaternion
+from ..exact_flows import AbstractSplitScene, FreePart
 from ..groups._util import LOW_PRECISION_EPS, is_low_precision
 from ..groups.trig import computed_once
 from .base import RESULTS, AbstractOfOneScene, Step, check_parts, differentiated_as, flag_nonfinite, fractions_and_starts
@@ -128,11 +127,6 @@ class Splitting(AbstractOfOneScene):
                 f"Splitting needs a scene that splits into exactly solvable parts (an AbstractSplitScene such as FreeRigidBody), "
                 f"got {type(self.scene).__name__}; for other fields use a PRKMK method."
             )
-        if self.scene.bundle.base is UnitQuaternion:
-            raise TypeError(
-                f"{type(self.scene).__name__} on UnitQuaternion does not split: the splittings turn the columns of a rotation matrix; "
-                "use a PRKMK method (`scene.method(...)`), or the free body's `exact_flow()`, or the scene on SO3."
-            )
         if self.coefficients is not None:
             if not isinstance(self.coefficients, CompositionCoefficients):
                 raise TypeError(f"coefficients must be None or CompositionCoefficients, got {type(self.coefficients).__name__}.")
@@ -213,7 +207,7 @@ class Splitting(AbstractOfOneScene):
         if low:
             # As `AbstractMethod.advance`: the rounding of each rotation is
             # systematic for steady motions and would pull the state off the group.
-            z = renormalized_rotations(z, self.scene.rotation_rows)
+            z = self.scene.onto_group(z)
         y_next = self.scene.unpack(z, y, args)
         field_now = self.generator(vector_field, t, y, args)
         result = flag_nonfinite(RESULTS.successful, y_next)

@@ -207,7 +207,7 @@ ATTITUDES = (SO3, UnitQuaternion)
 """The representations of a body's attitude the one-body scenes accept."""
 
 
-def attitude_like(element: SO3 | UnitQuaternion, matrix: Array) -> SO3 | UnitQuaternion:
+def attitude_like(element: AbstractLieGroup, matrix: Array) -> SO3 | UnitQuaternion:
     """The rotation `matrix` in `element`'s representation. A quaternion is
     continued from `element` (q times the quaternion with w ≥ 0 of the turn
     qᵀ·matrix), so that a step that turns by less than π never jumps from q

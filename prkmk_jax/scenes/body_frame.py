@@ -1,7 +1,13 @@
 """The rigid body's frame for the exact-flow splittings: the state (Q, Π)
 packed components first in the body axes ordered by inertia, and the axis
 rotations ½Πᵢ²/Iᵢ of the kinetic energy on it. SO(3)-specific; the generic
-exact flows (`AxisRotation`, `MomentumKick`) are in `prkmk_jax.exact_flows`."""
+exact flows (`AxisRotation`, `MomentumKick`) are in `prkmk_jax.exact_flows`.
+
+The attitude is packed as its representation stores it: a rotation matrix
+row-major (rows 0–8, Π in rows 9–11), or a unit quaternion (w, x, y, z)
+(rows 0–3, Π in rows 4–6). An axis term turns the matrix's two other
+columns by θ, and the quaternion's pairs (q_axis, w) and (q_j, q_k) by θ/2
+(q ↦ q·(cos θ/2 + sin θ/2·e_axis))."""
 
 from typing import Any
 
@@ -11,7 +17,9 @@ import numpy as np
 from jaxtyping import Array
 
 from .._bundles import BundleElement
-from ..exact_flows import AxisRotation, Packed
+from ..exact_flows import AxisRotation, Packed, renormalized_rotations
+from ..groups.base import AbstractLieGroup
+from ..groups.quaternion import UnitQuaternion
 from ..groups.so3 import SO3
 
 
@@ -96,6 +104,100 @@ def unpacked_rotation_and_vector(z: Packed, like: BundleElement | None = None) -
     return BundleElement(SO3(flat[..., :9].reshape(*flat.shape[:-1], 3, 3)), flat[..., 9:])
 
 
+Attitude = type[AbstractLieGroup]
+"""How a packed body state holds the attitude: `SO3` (a matrix) or `UnitQuaternion`."""
+
+
+def momentum_row(attitude: Attitude) -> int:
+    """The first of Π's three rows in a body state packed with `attitude`."""
+    return 4 if attitude is UnitQuaternion else 9
+
+
+def packed_in_frame(y: BundleElement, frame: InertiaOrderedFrame) -> Packed:
+    """A state (Q, Π) packed components first in `frame`: its matrix's
+    columns and Π's components relabelled, or for a quaternion its vector
+    part's and Π's, with w times the frame's parity: then each pair of an
+    axis term turns by the same angle whatever the frame's handedness
+    (`body_axis_rotations`)."""
+    if not isinstance(y.base, UnitQuaternion):
+        return frame.relabel(packed_rotation_and_vector(y), (0,), (9,))
+    flat = jnp.moveaxis(jnp.concatenate([y.base.wxyz, y.fiber], axis=-1), -1, 0)
+    z = frame.relabel(flat, (), (1, 4))
+    return z.at[0].multiply(frame.parity)
+
+
+def unpacked_from_frame(z: Packed, attitude: Attitude, frame: InertiaOrderedFrame) -> BundleElement:
+    """Inverse of `packed_in_frame` for a state whose attitude is `attitude`."""
+    if attitude is not UnitQuaternion:
+        return unpacked_rotation_and_vector(frame.restore(z, (0,), (9,)))
+    flat = jnp.moveaxis(frame.restore(z.at[0].multiply(frame.parity), (), (1, 4)), 0, -1)
+    return BundleElement(UnitQuaternion(flat[..., :4]), flat[..., 4:])
+
+
+def packed_body_state(y: BundleElement, moments: Array) -> Packed:
+    """A state (Q, Π) on T*SO(3) packed components-first in the frame of the
+    axes ordered by `moments` (`InertiaOrderedFrame`, `packed_in_frame`)."""
+    return packed_in_frame(y, InertiaOrderedFrame.of(moments))
+
+
+def unpacked_body_state(z: Packed, like: BundleElement, moments: Array) -> BundleElement:
+    """Inverse of `packed_body_state`; `like` is a state of the same structure."""
+    return unpacked_from_frame(z, type(like.base), InertiaOrderedFrame.of(moments))
+
+
+def body_axis_rotations(frame: InertiaOrderedFrame, moments: Array, attitude: Attitude) -> tuple[AxisRotation, ...]:
+    """The axis terms ½Πᵢ²/Iᵢ of a rigid body's kinetic energy on a body
+    state packed in `frame` (`packed_in_frame`), in the order of the
+    frame's axes."""
+    if attitude is not UnitQuaternion:
+        return axis_rotations(frame, moments, momentum_row=9, matrix_rows=(0,))
+    ordered = frame.vector(moments)
+
+    def rotation(axis):
+        j, k = (axis + 1) % 3, (axis + 2) % 3
+        # q·(cos θ/2 + sin θ/2·e_axis) turns (q_axis, w) and (q_j, q_k) by θ/2;
+        # with w times the parity (`packed_in_frame`) both turn by the same
+        # signed angle in a left-handed frame too.
+        return AxisRotation(
+            axis,
+            vector_pair(axis, 4),
+            lambda z, args: frame.parity * z[4 + axis] / ordered[..., axis],
+            half_pairs=((1 + axis, 0), (1 + j, 1 + k)),
+        )
+
+    return tuple(rotation(axis) for axis in range(3))
+
+
+def body_vertical(z: Packed, frame: InertiaOrderedFrame, attitude: Attitude) -> list[Array]:
+    """Γ = Qᵀe₃ in `frame`'s components, three rows of shape (*batch,), on
+    a state packed with `attitude`: the matrix's last row (rows 6–8), or
+    from the quaternion Γ = e − 2w(v × e) + 2v × (v × e), e = e₃ in the
+    frame (a relabelling multiplies each cross product by the parity, and
+    w is packed times it)."""
+    if attitude is not UnitQuaternion:
+        return [z[6], z[7], z[8]]
+    w, v = z[0], [z[1], z[2], z[3]]
+    e = [(frame.order[..., a] == 2).astype(z.dtype) for a in range(3)]
+
+    def cross(a, b):
+        return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+    v_e = cross(v, e)
+    v_v_e = cross(v, v_e)
+    return [e[a] - 2 * w * v_e[a] + 2 * v_v_e[a] for a in range(3)]
+
+
+def renormalized_body_state(z: Packed, attitude: Attitude) -> Packed:
+    """z with its attitude moved back onto the group after a low-precision
+    step: one Björck step of the matrix (`renormalized_rotations`), or the
+    quaternion's Newton step towards norm 1 (`UnitQuaternion.renormalized`),
+    each where it has drifted past a few ulps."""
+    if attitude is not UnitQuaternion:
+        return renormalized_rotations(z, (0,))
+    q = UnitQuaternion(jnp.moveaxis(z[:4], 0, -1)).renormalized().wxyz
+    return jnp.concatenate([jnp.moveaxis(q, -1, 0), z[4:]])
+
+
 def axis_rotations(frame: InertiaOrderedFrame, moments: Array, momentum_row: int, matrix_rows: tuple[int, ...]) -> tuple[AxisRotation, ...]:
     """The axis terms ½Πᵢ²/Iᵢ of a rigid body's kinetic energy on the state
     packed in `frame` (`InertiaOrderedFrame.relabel`), in the order of the
@@ -108,17 +210,6 @@ def axis_rotations(frame: InertiaOrderedFrame, moments: Array, momentum_row: int
         return AxisRotation(axis, pairs, lambda z, args: frame.parity * z[momentum_row + axis] / ordered[..., axis])
 
     return tuple(rotation(axis) for axis in range(3))
-
-
-def packed_body_state(y: BundleElement, moments: Array) -> Packed:
-    """A state (Q, Π) on T*SO(3) packed components-first in the frame of the
-    axes ordered by `moments` (`InertiaOrderedFrame`)."""
-    return InertiaOrderedFrame.of(moments).relabel(packed_rotation_and_vector(y), (0,), (9,))
-
-
-def unpacked_body_state(z: Packed, like: BundleElement, moments: Array) -> BundleElement:
-    """Inverse of `packed_body_state`."""
-    return unpacked_rotation_and_vector(InertiaOrderedFrame.of(moments).restore(z, (0,), (9,)), like)
 
 
 def column_pairs(axis: int, first_row: int = 0) -> tuple[tuple[int, int], ...]:

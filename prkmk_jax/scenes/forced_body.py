@@ -10,7 +10,6 @@ did. On the left-trivialised cotangent bundle, body form, the generator is
 """
 
 from collections.abc import Callable
-from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -61,8 +60,6 @@ class ForcedRigidBody(AbstractBodyOnTStarSO3, exact_flows.AbstractSplitScene):
 
     torque_law: Callable[[Time, PyTree], Float[Array, "3"]] = eqx.field(static=True, default=harmonic_torque)
 
-    rotation_rows: ClassVar[tuple[int, ...]] = (0,)  # pyright: ignore[reportIncompatibleVariableOverride]  # an AbstractClassVar
-
     def __check_init__(self):
         if isinstance(self.torque_law, AbstractBundle):
             raise TypeError(
@@ -103,13 +100,18 @@ class ForcedRigidBody(AbstractBodyOnTStarSO3, exact_flows.AbstractSplitScene):
             body = jnp.broadcast_to(self.torque_law(t, args.torque), z.shape[1:] + (3,))
             return jnp.moveaxis(frame.vector(body), -1, 0)
 
-        kick = exact_flows.MomentumKick((9, 10, 11), torque)
+        attitude = self.bundle.base
+        first = body_frame.momentum_row(attitude)
+        kick = exact_flows.MomentumKick((first, first + 1, first + 2), torque)
         if free_part == "exact":
-            return (kick, FreeBodyFlow(frame, moments))
-        return (kick,) + body_frame.axis_rotations(frame, moments, momentum_row=9, matrix_rows=(0,))
+            return (kick, FreeBodyFlow(frame, moments, attitude))
+        return (kick,) + body_frame.body_axis_rotations(frame, moments, attitude)
 
     def pack(self, y, args: ForcedParameters):
         return body_frame.packed_body_state(y, body_frame.principal_moments(args.inertia, "ForcedRigidBody", batched=True))
 
     def unpack(self, z, like, args: ForcedParameters):
         return body_frame.unpacked_body_state(z, like, body_frame.principal_moments(args.inertia, "ForcedRigidBody", batched=True))
+
+    def onto_group(self, z):
+        return body_frame.renormalized_body_state(z, self.bundle.base)

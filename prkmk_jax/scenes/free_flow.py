@@ -53,6 +53,7 @@ this evaluation (`tests/test_exact_flow.py`, design notes).
 import functools
 from typing import ClassVar
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import expm
@@ -61,8 +62,8 @@ from jaxtyping import Array, Float
 from .. import elliptic, exact_flows
 from .._bundles import BundleElement
 from ..groups import SO3, hat
-from .base import rotation_matrix
-from .body_frame import InertiaOrderedFrame, packed_rotation_and_vector, unpacked_rotation_and_vector
+from .base import attitude_like, rotation_matrix
+from .body_frame import Attitude, InertiaOrderedFrame, packed_in_frame, unpacked_from_frame
 
 
 def _least_rotation(v: Array, e: Array) -> Array:
@@ -229,8 +230,9 @@ def _moving_flow(q: Array, pi: Array, inertia: Array, h: Array) -> tuple[Array, 
 class FreeBodyFlow(exact_flows.AbstractExactFlow):
     """The kinetic energy ½Π·I⁻¹Π as one part of a splitting, its flow the
     free body's in closed form (`free_body_flow`), on a state packed in
-    `frame` (`body_frame.packed_body_state`): unpacked to the body's own
-    axes, moved, packed again. Its coefficients are the moments and the step,
+    `frame` (`body_frame.packed_in_frame`): unpacked to the body's own
+    axes, moved, packed again (a quaternion continued from the sub-step's
+    start, `attitude_like`). Its coefficients are the moments and the step,
     so a sub-step is undone by the flow over −h, and its VJP is the flow's
     (`jax.vjp`). The splitting's coordinate map does not enter: the flow is
     exact whatever the map."""
@@ -239,6 +241,8 @@ class FreeBodyFlow(exact_flows.AbstractExactFlow):
     frame: InertiaOrderedFrame
     moments: Array
     """The principal moments in the body's own axes, (3,) or (*batch, 3)."""
+    attitude: Attitude = eqx.field(static=True, default=SO3)
+    """How the packed state holds the attitude: `SO3` or `UnitQuaternion`."""
 
     @property
     def reads_unmoved_rows_only(self) -> bool:
@@ -250,9 +254,9 @@ class FreeBodyFlow(exact_flows.AbstractExactFlow):
 
     def moved(self, z, coefficients):
         moments, h = coefficients
-        y = unpacked_rotation_and_vector(self.frame.restore(z, (0,), (9,)))
+        y = unpacked_from_frame(z, self.attitude, self.frame)
         q, pi = free_body_flow(rotation_matrix(y.base), y.fiber, moments, h)
-        return self.frame.relabel(packed_rotation_and_vector(BundleElement(SO3(q), pi)), (0,), (9,))
+        return packed_in_frame(BundleElement(attitude_like(y.base, q), pi), self.frame)
 
     def moved_change(self, start, change, coefficients):
         # Rounded relative to the state, not to the change: the closed form

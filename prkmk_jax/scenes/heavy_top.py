@@ -65,14 +65,14 @@ def _vertical(q: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     return q[..., 2, :]
 
 
-def gravity_torque(frame: body_frame.InertiaOrderedFrame, lever: Array):
-    """(t, z, args) ↦ Γ × ℓ on the state packed in `frame` (Γ = Qᵀe₃, rows
-    6–8), in that frame's components: the parity times the cross product
-    of the relabelled vectors."""
+def gravity_torque(frame: body_frame.InertiaOrderedFrame, lever: Array, attitude: body_frame.Attitude):
+    """(t, z, args) ↦ Γ × ℓ on the state packed in `frame` with `attitude`
+    (Γ = Qᵀe₃, `body_frame.body_vertical`), in that frame's components: the
+    parity times the cross product of the relabelled vectors."""
     ordered = frame.vector(lever)
 
     def torque(t, z, args):
-        g0, g1, g2 = z[6], z[7], z[8]
+        g0, g1, g2 = body_frame.body_vertical(z, frame, attitude)
         l0, l1, l2 = ordered[..., 0], ordered[..., 1], ordered[..., 2]
         return frame.parity * jnp.stack([g1 * l2 - g2 * l1, g2 * l0 - g0 * l2, g0 * l1 - g1 * l0])
 
@@ -98,8 +98,6 @@ class HeavyTop(AbstractScene, exact_flows.AbstractSplitScene):
 
     bundle: AbstractBundle = eqx.field(default_factory=lambda: Cotangent(SO3))
     form: ClassVar[Literal["space", "body"]] = "body"  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox lets a ClassVar implement an AbstractVar
-
-    rotation_rows: ClassVar[tuple[int, ...]] = (0,)  # pyright: ignore[reportIncompatibleVariableOverride]  # an AbstractClassVar
 
     def __check_init__(self):
         if not isinstance(self.bundle, (Cotangent, DirectProduct)) or self.bundle.base not in ATTITUDES:
@@ -147,16 +145,21 @@ class HeavyTop(AbstractScene, exact_flows.AbstractSplitScene):
     def exact_flows(self, args: TopParameters, free_part="axes"):
         moments = body_frame.principal_moments(args.inertia, "HeavyTop", batched=True)
         frame = body_frame.InertiaOrderedFrame.of(moments)
-        kick = exact_flows.MomentumKick((9, 10, 11), gravity_torque(frame, jnp.asarray(args.lever)))
+        attitude = self.bundle.base
+        first = body_frame.momentum_row(attitude)
+        kick = exact_flows.MomentumKick((first, first + 1, first + 2), gravity_torque(frame, jnp.asarray(args.lever), attitude))
         if free_part == "exact":
-            return (kick, FreeBodyFlow(frame, moments))
-        return (kick,) + body_frame.axis_rotations(frame, moments, momentum_row=9, matrix_rows=(0,))
+            return (kick, FreeBodyFlow(frame, moments, attitude))
+        return (kick,) + body_frame.body_axis_rotations(frame, moments, attitude)
 
     def pack(self, y, args: TopParameters):
         return body_frame.packed_body_state(y, body_frame.principal_moments(args.inertia, "HeavyTop", batched=True))
 
     def unpack(self, z, like, args: TopParameters):
         return body_frame.unpacked_body_state(z, like, body_frame.principal_moments(args.inertia, "HeavyTop", batched=True))
+
+    def onto_group(self, z):
+        return body_frame.renormalized_body_state(z, self.bundle.base)
 
 
 class SphericalTop(AbstractScene):

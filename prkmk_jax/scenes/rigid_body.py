@@ -14,7 +14,7 @@ The inertia is passed as `args` (differentiable, no recompiles): for SO(3) a
 is I_k = J_i + J_j).
 """
 
-from typing import ClassVar, Literal
+from typing import Literal
 
 import equinox as eqx
 import jax
@@ -240,8 +240,6 @@ class FreeRigidBody(AbstractScene, exact_flows.AbstractSplitScene, exact_flows.A
     bundle: AbstractBundle = eqx.field(default_factory=lambda: Cotangent(SO3))
     form: Literal["space", "body"] = eqx.field(default="body", static=True)
 
-    rotation_rows: ClassVar[tuple[int, ...]] = (0,)  # pyright: ignore[reportIncompatibleVariableOverride]  # an AbstractClassVar
-
     def __check_init__(self):
         left = isinstance(self.bundle, AbstractSemidirect) and self.bundle.trivialization == "left"
         if not (left or isinstance(self.bundle, DirectProduct)) or self.bundle.base not in ATTITUDES:
@@ -302,15 +300,19 @@ class FreeRigidBody(AbstractScene, exact_flows.AbstractSplitScene, exact_flows.A
 
     def exact_flows(self, inertia, free_part="axes"):
         moments = body_frame.principal_moments(inertia, "FreeRigidBody")
+        frame = body_frame.InertiaOrderedFrame.of(moments)
         if free_part == "exact":
-            return (FreeBodyFlow(body_frame.InertiaOrderedFrame.of(moments), moments),)
-        return body_frame.axis_rotations(body_frame.InertiaOrderedFrame.of(moments), moments, momentum_row=9, matrix_rows=(0,))
+            return (FreeBodyFlow(frame, moments, self.bundle.base),)
+        return body_frame.body_axis_rotations(frame, moments, self.bundle.base)
 
     def pack(self, y, inertia):
         return body_frame.packed_body_state(y, body_frame.principal_moments(inertia, "FreeRigidBody"))
 
     def unpack(self, z, like, inertia):
         return body_frame.unpacked_body_state(z, like, body_frame.principal_moments(inertia, "FreeRigidBody"))
+
+    def onto_group(self, z):
+        return body_frame.renormalized_body_state(z, self.bundle.base)
 
 
 class SymmetricRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
@@ -326,8 +328,6 @@ class SymmetricRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
 
     bundle: AbstractBundle = eqx.field(default_factory=lambda: Cartesian(SO3))
     form: Literal["space", "body"] = eqx.field(default="body", static=True)
-
-    rotation_rows: ClassVar[tuple[int, ...]] = (0, 9)  # pyright: ignore[reportIncompatibleVariableOverride]  # an AbstractClassVar
 
     def __check_init__(self):
         if not (isinstance(self.bundle, Cartesian) and self.bundle.base in (SO3, SOn)):
@@ -400,3 +400,6 @@ class SymmetricRigidBody(AbstractScene, exact_flows.AbstractSplitScene):
         flat = jnp.moveaxis(frame.restore(z, (0, 9), ()), 0, -1)
         batch = flat.shape[:-1]
         return BundleElement(SO3(flat[..., :9].reshape(*batch, 3, 3)), SO3(flat[..., 9:].reshape(*batch, 3, 3)))
+
+    def onto_group(self, z):
+        return exact_flows.renormalized_rotations(z, (0, 9))
