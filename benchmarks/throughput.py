@@ -4,8 +4,8 @@
    PRKMK Störmer–Verlet (T*SO(3), body form, exp) through `lax.scan`
    (`prkmk_jax.integrate`) and through `diffeqsolve`, in float64 and
    float32, diffrax Tsit5 with constant steps on the embedding ℝ⁹×ℝ³, and
-   for the cost of a step beside it, RKMK 8 (Cayley) and the exact flow;
-   SV and RKMK 8 again with the attitude a unit quaternion.
+   for the cost of a step beside it, RKMK 8 (Cayley), the exact flow and the
+   Kahan–Li 6 splitting; SV, RKMK 8 and the splitting again on quaternions.
    The step count per run shrinks with the batch so every run does a
    similar amount of work; all run in alternation (7 rounds; medians,
    and the median per-round ratio to Tsit5); also reported: implicit
@@ -93,6 +93,8 @@ def throughput(quick, rounds):
             "diffrax Tsit5 (embedding)": (jnp.float64, _tsit5(steps)),
             "PRKMK DP8 Cayley scan": (jnp.float64, _scan(C.SCENE.method(pk.dormand_prince_8, pk.Cayley()), steps)),
             "exact flow scan": (jnp.float64, _scan(C.SCENE.exact_flow(), steps)),
+            "Kahan–Li 6 splitting scan": (jnp.float64, _scan(C.SCENE.splitting(pk.kahan_li_6), steps)),
+            "Kahan–Li 6 splitting scan, quaternion": (jnp.float64, _scan(QUATERNIONS.splitting(pk.kahan_li_6), steps, QUATERNIONS)),
             "PRKMK SV scan, quaternion": (jnp.float64, _scan(QUATERNIONS.method(pk.stormer_verlet), steps, QUATERNIONS)),
             "PRKMK DP8 Cayley scan, quaternion": (
                 jnp.float64,
