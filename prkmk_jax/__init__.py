@@ -47,6 +47,7 @@ from .compositions import yoshida_triple_jump as yoshida_triple_jump
 from .coordinates import AbstractCoordinates as AbstractCoordinates
 from .coordinates import Cayley as Cayley
 from .coordinates import Exp as Exp
+from .groups import SE3 as SE3
 from .groups import SO3 as SO3
 from .groups import SOn as SOn
 from .groups import UnitQuaternion as UnitQuaternion

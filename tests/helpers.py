@@ -198,6 +198,19 @@ def gradient_and_central_differences(loss, x, *rest, step=1e-5):
     return np.asarray(gradient), central_differences(lambda z: value_and_grad(z, *rest)[0], x, step)
 
 
+def assert_jacobians_at_the_identity(f, dim: int, atol=1e-8):
+    """`jax.jacfwd` and `jax.jacrev` of f at 0 ∈ ℝ^dim are finite and equal
+    central differences of f (steps 1e-6): a map's Taylor branch at the
+    identity differentiates as the map does."""
+    f = jax.jit(f)
+    forward, reverse = jax.jit(lambda u: (jax.jacfwd(f)(u), jax.jacrev(f)(u)))(jnp.zeros(dim))
+    assert np.all(np.isfinite(forward)) and np.all(np.isfinite(reverse))
+    eps = 1e-6
+    differences = np.stack([(f(eps * e) - f(-eps * e)) / (2 * eps) for e in jnp.eye(dim)], axis=-1)
+    np.testing.assert_allclose(forward, differences, atol=atol)
+    np.testing.assert_allclose(reverse, differences, atol=atol)
+
+
 def max_leaf_difference(a, b) -> float:
     """max |a − b| over the entries of two pytrees of the same structure, in
     NumPy (float64): no program compiled for each new shape."""

@@ -2,6 +2,7 @@ from .base import AbstractLieGroup as AbstractLieGroup
 from .base import AbstractQuadraticGroup as AbstractQuadraticGroup
 from .quaternion import UnitQuaternion as UnitQuaternion
 from .rotation import AbstractRotationGroup as AbstractRotationGroup
+from .se3 import SE3 as SE3
 from .so3 import SO3 as SO3
 from .so3 import hat as hat
 from .so3 import vee as vee

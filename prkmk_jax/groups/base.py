@@ -194,10 +194,11 @@ class AbstractLieGroup(eqx.Module):
 
 class AbstractQuadraticGroup(AbstractLieGroup):
     """A group on which the Cayley map cay(u) = (1 − u/2)⁻¹(1 + u/2) is a
-    local diffeomorphism g → G: the quadratic groups {X : XᵀJX = J} (paper §4.4)
-    and the additive group ℝⁿ (whose unipotent matrix representation makes
-    cay(u) = exp(u) = translation by u). A quadratic group adds three
-    methods (`cayley`, `cayley_inverse`, `dcayley_inv`); the rest default."""
+    local diffeomorphism g → G: the quadratic groups {X : XᵀJX = J} (paper §4.4),
+    the additive group ℝⁿ (whose unipotent matrix representation makes
+    cay(u) = exp(u) = translation by u) and SE(3) (its 4×4 matrices). Such a
+    group adds three methods (`cayley`, `cayley_inverse`, `dcayley_inv`); the
+    rest default."""
 
     @classmethod
     @abc.abstractmethod
