@@ -113,12 +113,15 @@ BUNDLES = {
     "cartesian-SO4": pk.Cartesian(pk.SOn),
     "direct-SO4": pk.DirectProduct(pk.SOn),
     "semidirect-right-R3": pk.Semidirect(pk.VectorSpace, "right"),
+    "semidirect-left-SE3": pk.Semidirect(pk.SE3, "left"),
 }
 
 
 def bundle_algebra(bundle, a, b):
     if bundle.base is pk.SOn:
         return _so4(a / 2), _so4(b / 2)
+    if bundle.base is pk.SE3:
+        return jnp.asarray(a), jnp.asarray(b)
     return jnp.asarray(a[:3]), jnp.asarray(b[:3])
 
 
@@ -130,6 +133,8 @@ def tangent_to_algebra(bundle, tangent):
             return pk.vee(t.matrix)
         if isinstance(t, pk.SOn):
             return t.matrix
+        if isinstance(t, pk.SE3):
+            return jnp.concatenate([pk.vee(t.rotation), t.translation], axis=-1)
         return t.value
 
     second = base_part(tangent.fiber) if bundle.fiber_is_group else tangent.fiber
