@@ -49,6 +49,7 @@ from .coordinates import Cayley as Cayley
 from .coordinates import Exp as Exp
 from .groups import SE3 as SE3
 from .groups import SO3 as SO3
+from .groups import SO3xR3 as SO3xR3
 from .groups import SOn as SOn
 from .groups import UnitQuaternion as UnitQuaternion
 from .groups import VectorSpace as VectorSpace

@@ -211,6 +211,24 @@ def assert_jacobians_at_the_identity(f, dim: int, atol=1e-8):
     np.testing.assert_allclose(reverse, differences, atol=atol)
 
 
+def assert_closed_forms_are_the_defaults(group, plain, u, x):
+    """What `group` writes in closed form (its differentials, actions, fiber
+    solves and changes) equals, at algebra elements u and x, what `plain`
+    (the same group with only the methods every group must write) gets from
+    the defaults."""
+
+    def close(a, b, tol):
+        for p, q in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+            np.testing.assert_allclose(np.asarray(p), np.asarray(q), rtol=0, atol=tol)
+
+    for method in ["dexp", "dexp_inv", "exp_adjoint", "exp_adjoint_change", "dcayley", "cayley_adjoint", "cayley_adjoint_change"]:
+        close(getattr(plain, method)(u, x), getattr(group, method)(u, x), 1e-13)
+    close(plain.inverse_shifted_ad(u, x, 0.5), group.inverse_shifted_ad(u, x, 0.5), 1e-13)
+    close(plain.shifted_cayley_adjoint_inverse(u, x), group.shifted_cayley_adjoint_inverse(u, x), 1e-13)
+    for method in ["exp_change", "cayley_change"]:
+        close(getattr(plain, method)(u), getattr(group, method)(u), 1e-15)
+
+
 def max_leaf_difference(a, b) -> float:
     """max |a − b| over the entries of two pytrees of the same structure, in
     NumPy (float64): no program compiled for each new shape."""

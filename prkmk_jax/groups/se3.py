@@ -25,56 +25,30 @@ bundles, not of `Cotangent`.
 from collections.abc import Callable
 from typing import ClassVar, Literal, Self
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._util import as_array, check_floating
-from .base import AbstractQuadraticGroup
+from .pose import AbstractRotationAndTranslation, Twist, parts, rotate, twist
 from .so3 import SO3
-
-Twist = Float[Array, "*batch 6"]
-"""An element (ω, v) of se(3): angular part first."""
-
-
-def _parts(u: Twist) -> tuple[Array, Array]:
-    return u[..., :3], u[..., 3:]
-
-
-def _twist(omega: Array, v: Array) -> Twist:
-    omega, v = jnp.broadcast_arrays(omega, v)
-    return jnp.concatenate([omega, v], axis=-1)
 
 
 def _of_ad(so3_function: Callable[[Array, Array], Array], u: Twist, x: Twist) -> Twist:
     """f(ad_u) x for the function of ad that `so3_function(ω, a)` = f(ω̂) a
     is on so(3): (f(ω̂) a, f(ω̂) b + Df(ω̂)[v̂] a) for u = (ω, v), x = (a, b)
     (module docstring)."""
-    omega, v = _parts(u)
-    a, b = _parts(x)
+    omega, v = parts(u)
+    a, b = parts(x)
     omega, v, a, b = jnp.broadcast_arrays(omega, v, a, b)
     f_a, derivative = jax.jvp(lambda w: so3_function(w, a), (omega,), (v,))
-    return _twist(f_a, so3_function(omega, b) + derivative)
+    return twist(f_a, so3_function(omega, b) + derivative)
 
 
-class SE3(AbstractQuadraticGroup):
+class SE3(AbstractRotationAndTranslation):
     """A rigid motion x ↦ Rx + p (module docstring); leading batch axes allowed."""
-
-    rotation: Float[Array, "*batch 3 3"] = eqx.field(converter=as_array)
-    """R, with RᵀR = I and det R = 1."""
-    translation: Float[Array, "*batch 3"] = eqx.field(converter=as_array)
-    """p."""
 
     algebra_ndim: ClassVar[int] = 1  # pyright: ignore[reportIncompatibleVariableOverride]  # implements an AbstractClassVar
     bi_invariant_pairing: ClassVar[bool] = False  # pyright: ignore[reportIncompatibleVariableOverride]  # implements an AbstractClassVar
-
-    def __check_init__(self):
-        check_floating(self.rotation, "an SE3 rotation")
-        check_floating(self.translation, "an SE3 translation")
-        if self.rotation.shape[-2:] != (3, 3) or self.translation.shape[-1:] != (3,):
-            shapes = f"{self.rotation.shape} and {self.translation.shape}"
-            raise ValueError(f"SE3 needs a (..., 3, 3) rotation and a (..., 3) translation, got shapes {shapes}.")
 
     def as_matrix(self) -> Float[Array, "*batch 4 4"]:
         """The homogeneous matrix [[R, p], [0, 1]]."""
@@ -87,50 +61,32 @@ class SE3(AbstractQuadraticGroup):
     @classmethod
     def exp(cls, u: Twist) -> Self:
         """(exp(ω̂), dexp_ω v)."""
-        omega, v = _parts(u)
+        omega, v = parts(u)
         return cls(SO3.exp(omega).matrix, SO3.dexp(omega, v))
 
     def log(self) -> Twist:
         """(ω, dexp⁻¹_ω p), ω = log R (`SO3.log`: rotation angles below π)."""
         omega = SO3(self.rotation).log()
-        return _twist(omega, SO3.dexp_inv(omega, self.translation))
+        return twist(omega, SO3.dexp_inv(omega, self.translation))
 
     def multiply(self, other: Self) -> Self:  # pyright: ignore[reportIncompatibleMethodOverride]  # pyright binds the base's Self in a parameter to the base class
-        return type(self)(self.rotation @ other.rotation, _rotate(self.rotation, other.translation) + self.translation)
+        return self._with(self.rotation @ other.rotation, rotate(self.rotation, other.translation) + self.translation)
 
     def inverse(self) -> Self:
         transposed = jnp.swapaxes(self.rotation, -1, -2)
-        return type(self)(transposed, -_rotate(transposed, self.translation))
-
-    def identity_like(self) -> Self:
-        rotation = jnp.broadcast_to(jnp.eye(3, dtype=self.rotation.dtype), self.rotation.shape)
-        return type(self)(rotation, jnp.zeros(rotation.shape[:-1], self.translation.dtype))
+        return self._with(transposed, -rotate(transposed, self.translation))
 
     def adjoint(self, u: Twist) -> Twist:
         """Ad_g (ω, v) = (Rω, Rv + p × Rω)."""
-        omega, v = _parts(u)
-        turned = _rotate(self.rotation, omega)
-        return _twist(turned, _rotate(self.rotation, v) + jnp.cross(self.translation, turned))
+        omega, v = parts(u)
+        turned = rotate(self.rotation, omega)
+        return twist(turned, rotate(self.rotation, v) + jnp.cross(self.translation, turned))
 
     @classmethod
     def bracket(cls, u: Twist, v: Twist) -> Twist:
         """[(ω, v), (x, y)] = (ω × x, ω × y − x × v): the 4×4 matrices' commutator."""
-        (omega, a), (x, b) = _parts(u), _parts(v)
-        return _twist(jnp.cross(omega, x), jnp.cross(omega, b) - jnp.cross(x, a))
-
-    def check(self) -> Self:
-        """A rotation within the rotations' tolerance, and a finite translation."""
-        rotation = SO3(self.rotation).check().matrix
-        finite = jnp.all(jnp.isfinite(self.translation))
-        translation = eqx.error_if(self.translation, ~finite, "SE3 translation is not finite (NaN or inf).")
-        return type(self)(rotation, translation)
-
-    def project(self) -> Self:
-        """The nearest rotation (`SO3.project`), the translation as it is."""
-        return type(self)(SO3(self.rotation).project().matrix, self.translation)
-
-    def renormalized(self) -> Self:
-        return type(self)(SO3(self.rotation).renormalized().matrix, self.translation)
+        (omega, a), (x, b) = parts(u), parts(v)
+        return twist(jnp.cross(omega, x), jnp.cross(omega, b) - jnp.cross(x, a))
 
     # --- differentials: SO(3)'s closed forms on the dual numbers ---------------
     @classmethod
@@ -144,48 +100,43 @@ class SE3(AbstractQuadraticGroup):
     @classmethod
     def inverse_shifted_ad(cls, u: Twist, v: Twist, alpha: float) -> Twist:
         """(I + α ad_u)⁻¹ (a, b) = (w, S(b − α v × w)), w = S a, S = (I + α ω̂)⁻¹."""
-        (omega, shift), (a, b) = _parts(u), _parts(v)
+        (omega, shift), (a, b) = parts(u), parts(v)
         w = SO3.inverse_shifted_ad(omega, a, alpha)
-        return _twist(w, SO3.inverse_shifted_ad(omega, b - alpha * jnp.cross(shift, w), alpha))
+        return twist(w, SO3.inverse_shifted_ad(omega, b - alpha * jnp.cross(shift, w), alpha))
 
     # --- changes: the identity kept out ------------------------------------------
     @classmethod
     def exp_change(cls, u: Twist) -> "SE3":
         """(exp(ω̂) − I, dexp_ω v): the translation is its own change."""
-        omega, v = _parts(u)
+        omega, v = parts(u)
         return cls(SO3.exp_change(omega), SO3.dexp(omega, v))
 
     def product_change(self, change: "SE3", side: Literal["right", "left"]) -> Self:
         """g·(e + c) − g = (R c_R, R c_p), or (e + c)·g − g = (c_R R, c_R p + c_p)."""
         if side == "right":
-            return type(self)(self.rotation @ change.rotation, _rotate(self.rotation, change.translation))
-        return type(self)(change.rotation @ self.rotation, _rotate(change.rotation, self.translation) + change.translation)
+            return self._with(self.rotation @ change.rotation, rotate(self.rotation, change.translation))
+        return self._with(change.rotation @ self.rotation, rotate(change.rotation, self.translation) + change.translation)
 
     # --- Cayley ------------------------------------------------------------------
     @classmethod
     def cayley(cls, u: Twist) -> Self:
         """(cay(ω̂), (I − ω̂/2)⁻¹ v)."""
-        omega, v = _parts(u)
+        omega, v = parts(u)
         return cls(SO3.cayley(omega).matrix, SO3.inverse_shifted_ad(omega, v, -0.5))
 
     @classmethod
     def cayley_change(cls, u: Twist) -> "SE3":
-        omega, v = _parts(u)
+        omega, v = parts(u)
         return cls(SO3.cayley_change(omega), SO3.inverse_shifted_ad(omega, v, -0.5))
 
     def cayley_inverse(self) -> Twist:
         """(cay⁻¹ R, (I − ω̂/2) p)."""
         omega = SO3(self.rotation).cayley_inverse()
-        return _twist(omega, self.translation - 0.5 * jnp.cross(omega, self.translation))
+        return twist(omega, self.translation - 0.5 * jnp.cross(omega, self.translation))
 
     @classmethod
     def dcayley_inv(cls, u: Twist, v: Twist) -> Twist:
         """x − [u, x]/2 − u x u/4 on the blocks: (dcay⁻¹_ω a, b − (ω × b − a × v)/2 − ω × (a × v)/4)."""
-        (omega, shift), (a, b) = _parts(u), _parts(v)
+        (omega, shift), (a, b) = parts(u), parts(v)
         a_shift = jnp.cross(a, shift)
-        return _twist(SO3.dcayley_inv(omega, a), b - 0.5 * (jnp.cross(omega, b) - a_shift) - 0.25 * jnp.cross(omega, a_shift))
-
-
-def _rotate(rotation: Array, x: Array) -> Array:
-    """R x for matrices and vectors with leading batch axes."""
-    return jnp.einsum("...ij,...j->...i", rotation, x)
+        return twist(SO3.dcayley_inv(omega, a), b - 0.5 * (jnp.cross(omega, b) - a_shift) - 0.25 * jnp.cross(omega, a_shift))

@@ -1,8 +1,12 @@
-"""SE(3): every map against the 4×4 homogeneous matrices (expm, the
-commutator, the matrix Cayley map, autodiff of both maps for their
-differentials), the changes, gradients at the identity, and PRKMK methods
-on a bundle over it reaching their orders against a DOP853 reference of
-the equations on ℝ¹⁸."""
+"""The groups of a rotation and a translation. SE(3): every map against
+the 4×4 homogeneous matrices (expm, the commutator, the matrix Cayley map,
+autodiff of both maps for their differentials), the changes, gradients at
+the identity, and PRKMK methods on a bundle over it reaching their orders
+against a DOP853 reference of the equations on ℝ¹⁸. SE(3) and SO(3) × ℝ³:
+what they write in closed form against the defaults built from the methods
+every group must write. (The group laws, log∘exp, the bracket as the
+commutator and the bundles' exact inverse differentials are
+`test_groups.py`'s and `test_coordinates.py`'s, for both.)"""
 
 import jax
 import jax.numpy as jnp
@@ -13,7 +17,7 @@ from jax.scipy.linalg import expm
 from scipy.integrate import solve_ivp
 
 import prkmk_jax as pk
-from helpers import algebra_vectors, assert_jacobians_at_the_identity, final_state_by_steps
+from helpers import algebra_vectors, assert_closed_forms_are_the_defaults, assert_jacobians_at_the_identity, final_state_by_steps
 
 G = pk.SE3
 vectors6 = algebra_vectors(dim=6, max_norm=3.0)
@@ -167,3 +171,77 @@ def test_prkmk_on_se3_reaches_its_order(tableau, coordinates, order):
         errors.append(np.max(np.abs(state - reference)))
     slope = np.polyfit(np.log(t_end / np.asarray(steps)), np.log(errors), 1)[0]
     assert abs(slope - order) < 0.2, (slope, errors)
+
+
+# --- closed forms against the defaults --------------------------------------------------
+def _written_with_the_required_methods_only(group):
+    """`group` with only the methods every (quadratic) group must write, the
+    others taken from `AbstractQuadraticGroup`'s defaults (series, dense
+    solves, the identity subtracted after the fact)."""
+
+    class Plain(pk.groups.AbstractQuadraticGroup):
+        rotation: jax.Array
+        translation: jax.Array
+        algebra_ndim = 1
+        bi_invariant_pairing = group.bi_invariant_pairing
+
+        def _of(self):
+            return group(self.rotation, self.translation)
+
+        @classmethod
+        def _from(cls, g):
+            return cls(g.rotation, g.translation)
+
+        @classmethod
+        def exp(cls, u):
+            return cls._from(group.exp(u))
+
+        def log(self):
+            return self._of().log()
+
+        def multiply(self, other):
+            return self._from(self._of() @ other._of())
+
+        def inverse(self):
+            return self._from(self._of().inverse())
+
+        def identity_like(self):
+            return self._from(self._of().identity_like())
+
+        def adjoint(self, u):
+            return self._of().adjoint(u)
+
+        @classmethod
+        def bracket(cls, u, v):
+            return group.bracket(u, v)
+
+        def check(self):
+            return self
+
+        def project(self):
+            return self
+
+        @classmethod
+        def cayley(cls, u):
+            return cls._from(group.cayley(u))
+
+        def cayley_inverse(self):
+            return self._of().cayley_inverse()
+
+        @classmethod
+        def dcayley_inv(cls, u, v):
+            return group.dcayley_inv(u, v)
+
+    return Plain
+
+
+@pytest.mark.parametrize("group", [pk.SE3, pk.SO3xR3], ids=lambda g: g.__name__)
+def test_the_closed_forms_agree_with_the_defaults(group):
+    plain = _written_with_the_required_methods_only(group)
+    rng = np.random.default_rng(3)
+    u = jnp.asarray(0.8 * rng.normal(size=(2, 6)) / 3)
+    x = jnp.asarray(rng.normal(size=(2, 6)))
+    assert_closed_forms_are_the_defaults(group, plain, u, x)
+    g, change = group.exp(x), group.exp_change(u)
+    for side in ["right", "left"]:
+        _close(g.product_change(change, side), plain._from(g).product_change(plain.exp_change(u), side), tol=1e-15)
