@@ -104,6 +104,27 @@ class SE3(AbstractRotationAndTranslation):
         w = SO3.inverse_shifted_ad(omega, a, alpha)
         return twist(w, SO3.inverse_shifted_ad(omega, b - alpha * jnp.cross(shift, w), alpha))
 
+    # --- the actions of exp(u) and cay(u), without forming them ---------------------
+    @classmethod
+    def exp_adjoint(cls, u: Twist, x: Twist) -> Twist:
+        omega, v = parts(u)
+        return _turned_and_shifted(SO3.exp_adjoint, SO3.dexp(omega, v), omega, x)
+
+    @classmethod
+    def exp_adjoint_change(cls, u: Twist, x: Twist) -> Twist:
+        omega, v = parts(u)
+        return _turned_and_shifted(SO3.exp_adjoint_change, SO3.dexp(omega, v), omega, x, change=True)
+
+    @classmethod
+    def cayley_adjoint(cls, u: Twist, x: Twist) -> Twist:
+        omega, v = parts(u)
+        return _turned_and_shifted(SO3.cayley_adjoint, SO3.inverse_shifted_ad(omega, v, -0.5), omega, x)
+
+    @classmethod
+    def cayley_adjoint_change(cls, u: Twist, x: Twist) -> Twist:
+        omega, v = parts(u)
+        return _turned_and_shifted(SO3.cayley_adjoint_change, SO3.inverse_shifted_ad(omega, v, -0.5), omega, x, change=True)
+
     # --- changes: the identity kept out ------------------------------------------
     @classmethod
     def exp_change(cls, u: Twist) -> "SE3":
@@ -140,3 +161,14 @@ class SE3(AbstractRotationAndTranslation):
         (omega, shift), (a, b) = parts(u), parts(v)
         a_shift = jnp.cross(a, shift)
         return twist(SO3.dcayley_inv(omega, a), b - 0.5 * (jnp.cross(omega, b) - a_shift) - 0.25 * jnp.cross(omega, a_shift))
+
+
+def _turned_and_shifted(turn, translation: Array, omega: Array, x: Twist, change: bool = False) -> Twist:
+    """Ad_g (a, b) = (Ra, Rb + p × Ra) for g = (R, p), R applied as
+    `turn(ω, ·)` (`SO3.exp_adjoint` or `SO3.cayley_adjoint`) and p =
+    `translation`; with `change`, `turn` gives Ra − a and this Ad_g x − x,
+    both parts rounded relative to the change (p × Ra is of its size)."""
+    a, b = parts(x)
+    turned_a = turn(omega, a)
+    rotated_a = a + turned_a if change else turned_a
+    return twist(turned_a, turn(omega, b) + jnp.cross(translation, rotated_a))

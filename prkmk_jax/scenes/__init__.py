@@ -22,3 +22,5 @@ from .rigid_body import skew_arcsinh as skew_arcsinh
 from .rigid_body import symmetric_initial_state as symmetric_initial_state
 from .rigid_body import symmetric_rigid_body as symmetric_rigid_body
 from .rigid_body import unreduced_rigid_body as unreduced_rigid_body
+from .satellite import Satellite as Satellite
+from .satellite import SatelliteParameters as SatelliteParameters
