@@ -10,7 +10,17 @@ import pytest
 
 import prkmk_jax as pk
 from helpers import INERTIA, TOP_ARGS, PositiveReals, initial_state, rigid_body_field
-from prkmk_jax.scenes import ForcedParameters, ForcedRigidBody, FreeRigidBody, HeavyTop, SphericalTop, SymmetricRigidBody, TopParameters
+from prkmk_jax.scenes import (
+    ForcedParameters,
+    ForcedRigidBody,
+    FreeRigidBody,
+    HeavyTop,
+    Satellite,
+    SatelliteParameters,
+    SphericalTop,
+    SymmetricRigidBody,
+    TopParameters,
+)
 
 COTANGENT = pk.Cotangent(pk.SO3)
 FIELD = rigid_body_field(COTANGENT, "body")
@@ -39,6 +49,15 @@ SYMMETRIC = SymmetricRigidBody()
 SYMMETRIC_STATE = pk.BundleElement(pk.SO3(jnp.eye(3)), pk.SO3(jnp.eye(3)))
 SO4_STATE = pk.BundleElement(pk.SOn(jnp.eye(4)), pk.SOn(jnp.eye(4)))
 QUATERNION_BODY = FreeRigidBody(pk.Cotangent(pk.UnitQuaternion))
+SATELLITE_STATE = pk.BundleElement(pk.SO3xR3(jnp.eye(3), jnp.asarray([1.0, 0.0, 0.0])), jnp.asarray([0.0, 0.0, 1e-3, 0.0, 1.0, 0.0]))
+SATELLITE_ARGS = SatelliteParameters(jnp.asarray([3e-3, 2e-3, 1e-3]), 1.0, 1.0)
+SATELLITE = Satellite()
+
+
+def _satellite(args):
+    return _integrate(SATELLITE_STATE, method=SATELLITE.method(pk.stormer_verlet), field=SATELLITE, args=args)
+
+
 QUATERNION_METHOD = QUATERNION_BODY.method(pk.stormer_verlet)
 SPACE_FORM_METHOD = pk.PRKMK(COTANGENT, tableau=pk.stormer_verlet)  # form="space" by default
 
@@ -221,6 +240,16 @@ STATIC = {
     "UnitQuaternion of three numbers": (lambda: pk.UnitQuaternion(jnp.ones(3)), ValueError, r"\(\.\.\., 4\) array"),
     "UnitQuaternion of integers": (lambda: pk.UnitQuaternion(jnp.array([1, 0, 0, 0])), TypeError, "floating-point dtype"),
     "symmetric body on UnitQuaternion": (lambda: SymmetricRigidBody(pk.Cartesian(pk.UnitQuaternion)), TypeError, "SymmetricRigidBody"),
+    # rotations with translations, the satellite
+    "SE3, a translation of four numbers": (lambda: pk.SE3(jnp.eye(3), jnp.zeros(4)), ValueError, r"\(\.\.\., 3\) translation"),
+    "Cotangent(SE3)": (lambda: pk.Cotangent(pk.SE3), TypeError, "bi-invariant pairing"),
+    "satellite on T*SO(3)": (lambda: Satellite(pk.Cotangent(pk.SO3)), TypeError, "Satellite lives on"),
+    "satellite, args not SatelliteParameters": (
+        lambda: _satellite(jnp.ones(3)),
+        TypeError,
+        "SatelliteParameters",
+    ),
+    "satellite, a mass of two numbers": (lambda: SatelliteParameters(jnp.ones(3), jnp.ones(2), 1.0), ValueError, "mass is a scalar"),
     "splitting of the symmetric body on SO(4)": (
         lambda: _integrate(SO4_STATE, method=SYMMETRIC_SO4.splitting(), field=SYMMETRIC_SO4, args=jnp.ones(4)),
         ValueError,
@@ -344,6 +373,16 @@ RUNTIME = {
         lambda q: _integrate(pk.BundleElement(pk.UnitQuaternion(q), GOOD.fiber), field=QUATERNION_BODY, method=QUATERNION_METHOD),
         jnp.array([1.0, jnp.nan, 0.0, 0.0]),
         "UnitQuaternion element is not finite",
+    ),
+    "SE3, a translation not finite": (
+        lambda p: pk.SE3(jnp.eye(3), p).check().translation,
+        jnp.array([0.0, jnp.nan, 0.0]),
+        "SE3 translation is not finite",
+    ),
+    "satellite, a negative mass": (
+        lambda m: _satellite(SatelliteParameters(SATELLITE_ARGS.inertia, m, 1.0)),
+        jnp.asarray(-1.0),
+        "mass must be > 0",
     ),
     "diffeqsolve, y0 not orthogonal": (lambda y: _diffeqsolve(y), _with_base(NOT_ORTHOGONAL), "not orthogonal"),
     "diffeqsolve, y0 a reflection": (lambda y: _diffeqsolve(y), _with_base(REFLECTION), "det = −1"),

@@ -1,7 +1,7 @@
 """The groups of a rotation and a translation. SE(3): every map against
 the 4×4 homogeneous matrices (expm, the commutator, the matrix Cayley map,
 autodiff of both maps for their differentials), the changes, gradients at
-the identity, and PRKMK methods on a bundle over it reaching their orders
+the identity (bad inputs: `test_bad_inputs.py`), and PRKMK methods on a bundle over it reaching their orders
 against a DOP853 reference of the equations on ℝ¹⁸. SE(3) and SO(3) × ℝ³:
 what they write in closed form against the defaults built from the methods
 every group must write. (The group laws, log∘exp, the bracket as the
@@ -109,18 +109,6 @@ def test_gradients_finite_and_right_at_the_identity(fn):
         "dcayley_inv": lambda u: G.dcayley_inv(u, x),
     }
     assert_jacobians_at_the_identity(funcs[fn], 6)
-
-
-def test_check_and_bad_shapes():
-    good = G.exp(jnp.asarray([0.1, 0.2, 0.3, 1.0, 2.0, 3.0]))
-    _close(good.check(), good)
-    with pytest.raises(ValueError, match=r"\(\.\.\., 3\) translation"):
-        G(jnp.eye(3), jnp.zeros(4))
-    with pytest.raises(TypeError, match="Cotangent"):
-        pk.Cotangent(G)
-    bad = G(good.rotation, jnp.asarray([0.0, jnp.nan, 0.0]))
-    with pytest.raises(Exception, match="translation is not finite"):
-        jax.block_until_ready(jax.jit(lambda g: g.check().translation)(bad))
 
 
 # --- PRKMK on a bundle over SE(3) -------------------------------------------------------

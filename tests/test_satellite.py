@@ -2,7 +2,8 @@
 potential against MacCullagh's torque and differences of the potential, the
 scene's field against the equations written out, PRKMK methods reaching
 their orders against DOP853, the invariants a symplectic method keeps, and
-a gradient through a run against central differences."""
+a gradient through a run against central differences (bad inputs:
+`test_bad_inputs.py`)."""
 
 import jax.numpy as jnp
 import numpy as np
@@ -95,12 +96,3 @@ def test_gradient_in_the_parameters_matches_finite_differences():
 
     gradient, differences = gradient_and_central_differences(loss, jnp.asarray([3e-3, 2e-3, 1e-3, 1.0, 1.0]), step=1e-7)
     np.testing.assert_allclose(gradient, differences, rtol=1e-6)
-
-
-def test_bad_bundle_and_args():
-    with pytest.raises(TypeError, match="Satellite lives on"):
-        Satellite(pk.Cotangent(pk.SO3))
-    with pytest.raises(TypeError, match="SatelliteParameters"):
-        pk.integrate(Satellite().method(pk.stormer_verlet), Satellite(), _state(), 0.0, 0.1, 2, jnp.ones(3))
-    with pytest.raises(ValueError, match="mass is a scalar"):
-        SatelliteParameters(jnp.ones(3), jnp.ones(2), 1.0)

@@ -47,11 +47,17 @@ class SatelliteParameters(eqx.Module):
     """The central body's gravitational parameter μ = GM."""
 
     def __post_init__(self):
+        # Shapes are checked at construction; signs where the data is known
+        # (eagerly, or at run time under jit), as `checked_moments` does.
         self.inertia = checked_moments("SatelliteParameters.inertia", self.inertia)
-        self.mass, self.mu = jnp.asarray(self.mass), jnp.asarray(self.mu)
-        for name, value in (("mass", self.mass), ("mu", self.mu)):
-            if value.shape != ():
-                raise ValueError(f"SatelliteParameters.{name} is a scalar, got shape {value.shape}.")
+        self.mass, self.mu = (_positive_scalar(name, value) for name, value in (("mass", self.mass), ("mu", self.mu)))
+
+
+def _positive_scalar(name: str, value) -> Array:
+    value = jnp.asarray(value)
+    if value.shape != ():
+        raise ValueError(f"SatelliteParameters.{name} is a scalar, got shape {value.shape}.")
+    return eqx.error_if(value, ~(value > 0), f"SatelliteParameters.{name} must be > 0.")
 
 
 def potential(rotation: Array, position: Array, args: SatelliteParameters) -> Array:
