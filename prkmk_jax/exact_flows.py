@@ -263,13 +263,12 @@ class AxisRotation(AbstractExactFlow):
     def pulled_back(self, z, coefficients, cotangent):
         # (a, b) ↦ (c a + s b, c b − s a) is a rotation: its transpose is the
         # inverse, and its derivatives in s and c read the rows it turns.
-        # The turns move disjoint rows, so each is undone on its own rows.
+        # The turns move disjoint rows, so each reads and undoes its own rows.
         cotangent_coefficients = []
         for pairs, sine, cosine in self._turns(coefficients):
             partner, sign, moved = _pair_tables(z, pairs)
             cotangent_sine = jnp.sum(sign * cotangent * jnp.take(z, partner, axis=0), axis=0)
             cotangent_coefficients += [cotangent_sine, jnp.sum(moved * cotangent * z, axis=0)]
-        for pairs, sine, cosine in self._turns(coefficients):
             cotangent = rotated_array(cotangent, pairs, -sine, cosine)
         return cotangent, tuple(cotangent_coefficients)
 

@@ -87,9 +87,7 @@ class SO3xR3(AbstractRotationAndTranslation):
 
     @classmethod
     def exp_adjoint_change(cls, u: Twist, x: Twist) -> Twist:
-        omega, v = parts(u)
-        a, _ = parts(x)
-        return twist(SO3.exp_adjoint_change(omega, a), jnp.zeros_like(v))
+        return _on_rotations(SO3.exp_adjoint_change, u, x, translations=False)
 
     def product_change(self, change: "SO3xR3", side: Literal["right", "left"]) -> Self:
         """g·(e + c) − g = (R c_R, c_p), or (e + c)·g − g = (c_R R, c_p)."""
@@ -112,15 +110,15 @@ class SO3xR3(AbstractRotationAndTranslation):
 
     @classmethod
     def cayley_adjoint_change(cls, u: Twist, x: Twist) -> Twist:
-        omega, v = parts(u)
-        a, _ = parts(x)
-        return twist(SO3.cayley_adjoint_change(omega, a), jnp.zeros_like(v))
+        return _on_rotations(SO3.cayley_adjoint_change, u, x, translations=False)
 
 
-def _on_rotations(so3_map, u: Twist, x: Twist) -> Twist:
+def _on_rotations(so3_map, u: Twist, x: Twist, translations: bool = True) -> Twist:
     """(so3_map(ω, a), b) for u = (ω, v), x = (a, b): a linear map that is
-    SO(3)'s on the rotations and the identity on the translations."""
+    SO(3)'s on the rotations and the identity on the translations; with
+    `translations` False, (so3_map(ω, a), 0) (a change, which the identity
+    leaves at 0)."""
     omega, _ = parts(u)
     a, b = parts(x)
     turned = so3_map(omega, a)
-    return twist(turned, jnp.broadcast_to(b, turned.shape))
+    return twist(turned, jnp.broadcast_to(b, turned.shape) if translations else jnp.zeros_like(turned))

@@ -17,7 +17,7 @@ import numpy as np
 from jaxtyping import Array
 
 from .._bundles import BundleElement
-from ..exact_flows import AxisRotation, Packed, renormalized_rotations
+from ..exact_flows import AxisRotation, MomentumKick, Packed, renormalized_rotations
 from ..groups.base import AbstractLieGroup
 from ..groups.quaternion import UnitQuaternion
 from ..groups.so3 import SO3
@@ -108,9 +108,11 @@ Attitude = type[AbstractLieGroup]
 """How a packed body state holds the attitude: `SO3` (a matrix) or `UnitQuaternion`."""
 
 
-def momentum_row(attitude: Attitude) -> int:
-    """The first of Π's three rows in a body state packed with `attitude`."""
-    return 4 if attitude is UnitQuaternion else 9
+def momentum_kick(attitude: Attitude, torque) -> MomentumKick:
+    """The kick Π ↦ Π + h·`torque`(t, z, args) on a body state packed with
+    `attitude` (Π in rows 9–11 after a matrix, 4–6 after a quaternion)."""
+    first = 4 if attitude is UnitQuaternion else 9
+    return MomentumKick((first, first + 1, first + 2), torque)
 
 
 def packed_in_frame(y: BundleElement, frame: InertiaOrderedFrame) -> Packed:
@@ -149,23 +151,9 @@ def body_axis_rotations(frame: InertiaOrderedFrame, moments: Array, attitude: At
     """The axis terms ½Πᵢ²/Iᵢ of a rigid body's kinetic energy on a body
     state packed in `frame` (`packed_in_frame`), in the order of the
     frame's axes."""
-    if attitude is not UnitQuaternion:
-        return axis_rotations(frame, moments, momentum_row=9, matrix_rows=(0,))
-    ordered = frame.vector(moments)
-
-    def rotation(axis):
-        j, k = (axis + 1) % 3, (axis + 2) % 3
-        # q·(cos θ/2 + sin θ/2·e_axis) turns (q_axis, w) and (q_j, q_k) by θ/2;
-        # with w times the parity (`packed_in_frame`) both turn by the same
-        # signed angle in a left-handed frame too.
-        return AxisRotation(
-            axis,
-            vector_pair(axis, 4),
-            lambda z, args: frame.parity * z[4 + axis] / ordered[..., axis],
-            half_pairs=((1 + axis, 0), (1 + j, 1 + k)),
-        )
-
-    return tuple(rotation(axis) for axis in range(3))
+    if attitude is UnitQuaternion:
+        return axis_rotations(frame, moments, momentum_row=4, quaternion_row=0)
+    return axis_rotations(frame, moments, momentum_row=9, matrix_rows=(0,))
 
 
 def body_vertical(z: Packed, frame: InertiaOrderedFrame, attitude: Attitude) -> list[Array]:
@@ -198,16 +186,31 @@ def renormalized_body_state(z: Packed, attitude: Attitude) -> Packed:
     return jnp.concatenate([jnp.moveaxis(q, -1, 0), z[4:]])
 
 
-def axis_rotations(frame: InertiaOrderedFrame, moments: Array, momentum_row: int, matrix_rows: tuple[int, ...]) -> tuple[AxisRotation, ...]:
+def axis_rotations(
+    frame: InertiaOrderedFrame, moments: Array, momentum_row: int, matrix_rows: tuple[int, ...] = (), quaternion_row: int | None = None
+) -> tuple[AxisRotation, ...]:
     """The axis terms ½Πᵢ²/Iᵢ of a rigid body's kinetic energy on the state
     packed in `frame` (`InertiaOrderedFrame.relabel`), in the order of the
-    frame's axes: rows `momentum_row` + (0, 1, 2) hold Π, and each 3×3 matrix
-    packed from a row in `matrix_rows` turns with the body (its columns)."""
+    frame's axes: rows `momentum_row` + (0, 1, 2) hold Π, each 3×3 matrix
+    packed from a row in `matrix_rows` turns with the body (its columns),
+    and a unit quaternion packed from `quaternion_row` as (parity·w, v)
+    (`packed_in_frame`) turns with it by half the angle: q·(cos θ/2 +
+    sin θ/2·e_axis) turns (q_axis, w) and (q_j, q_k) by θ/2, and with w
+    times the parity both turn by the same signed angle in a left-handed
+    frame too."""
     ordered = frame.vector(moments)
 
     def rotation(axis):
         pairs = sum((column_pairs(axis, first) for first in matrix_rows), ()) + vector_pair(axis, momentum_row)
-        return AxisRotation(axis, pairs, lambda z, args: frame.parity * z[momentum_row + axis] / ordered[..., axis])
+        half_pairs = ()
+        if quaternion_row is not None:
+            w, j, k = quaternion_row, (axis + 1) % 3, (axis + 2) % 3
+            half_pairs = ((w + 1 + axis, w), (w + 1 + j, w + 1 + k))
+
+        def rate(z, args):
+            return frame.parity * z[momentum_row + axis] / ordered[..., axis]
+
+        return AxisRotation(axis, pairs, rate, half_pairs=half_pairs)
 
     return tuple(rotation(axis) for axis in range(3))
 

@@ -101,8 +101,7 @@ class ForcedRigidBody(AbstractBodyOnTStarSO3, exact_flows.AbstractSplitScene):
             return jnp.moveaxis(frame.vector(body), -1, 0)
 
         attitude = self.bundle.base
-        first = body_frame.momentum_row(attitude)
-        kick = exact_flows.MomentumKick((first, first + 1, first + 2), torque)
+        kick = body_frame.momentum_kick(attitude, torque)
         if free_part == "exact":
             return (kick, FreeBodyFlow(frame, moments, attitude))
         return (kick,) + body_frame.body_axis_rotations(frame, moments, attitude)

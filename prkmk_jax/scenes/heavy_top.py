@@ -146,8 +146,7 @@ class HeavyTop(AbstractScene, exact_flows.AbstractSplitScene):
         moments = body_frame.principal_moments(args.inertia, "HeavyTop", batched=True)
         frame = body_frame.InertiaOrderedFrame.of(moments)
         attitude = self.bundle.base
-        first = body_frame.momentum_row(attitude)
-        kick = exact_flows.MomentumKick((first, first + 1, first + 2), gravity_torque(frame, jnp.asarray(args.lever), attitude))
+        kick = body_frame.momentum_kick(attitude, gravity_torque(frame, jnp.asarray(args.lever), attitude))
         if free_part == "exact":
             return (kick, FreeBodyFlow(frame, moments, attitude))
         return (kick,) + body_frame.body_axis_rotations(frame, moments, attitude)
