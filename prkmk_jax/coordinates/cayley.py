@@ -118,8 +118,8 @@ class Cayley(AbstractCoordinates):
         # cay(aE) on S³ is (2 + a e)/√(4 + a²): cos θ/2 = 2/√(4 + a²), sin θ/2 = a/√(4 + a²).
         # Two quotients by one r = √(4 + a²), as `UnitQuaternion.cayley`:
         # written as 2/√(4 + a²) alone, XLA computes it by rsqrt, whose
-        # rounding is biased (about −0.1 ulp in s² + c²), and a long run of
-        # turns would add the bias up in |q|.
+        # rounding leans one way (s² + c² below 1 on average), and a long
+        # run of turns would add the bias up in |q| (design notes).
         r = jnp.sqrt(4.0 + angle * angle)
         return computed_once(angle / r, 2.0 / r)
 
