@@ -12,9 +12,11 @@ scenes need two kinds:
   coordinates the rotation is cay(tωᵢeᵢ), turned by 2·atan(tωᵢ/2) instead of
   tωᵢ: not the exact flow, but a symmetric second-order one along the same
   orbit, which keeps everything the exact one keeps.
-* `MomentumKick`: the flow of a potential, or of an external torque at a
-  frozen time: the attitude stands still and the momentum moves by h times a
-  torque that depends on the attitude (and time) only: y·exp((0, hτ)).
+* `Shift`: rows moved by h times a rate read from other rows. The flow of a
+  potential, or of an external torque at a frozen time, is one: the
+  attitude stands still and the momentum moves by h times a torque that
+  depends on the attitude (and time) only, y·exp((0, hτ)); so is a
+  position's drift by its momentum, r ↦ r + hp/m.
 
 Flows act on the state packed as one array with its components first
 (`AbstractSplitScene.pack`): (d, *batch), each row one entry of the state,
@@ -273,38 +275,40 @@ class AxisRotation(AbstractExactFlow):
         return cotangent, tuple(cotangent_coefficients)
 
 
-class MomentumKick(AbstractExactFlow):
-    """The flow of a part that moves the momentum only, at a rate that does
-    not depend on the momentum: rows `rows` of z grow by h·`torque`(t, z, args)."""
+class Shift(AbstractExactFlow):
+    """The flow of a part that moves some rows at a rate read from the
+    others: rows `rows` of z grow by h·`rate`(t, z, args). A momentum kick
+    (the rate a torque or force of the attitude and position) and a drift
+    (the rate a velocity p/m) are such flows."""
 
     always_materialised: ClassVar[bool] = True  # pyright: ignore[reportIncompatibleVariableOverride]  # implements an AbstractClassVar
     rows: tuple[int, ...] = eqx.field(static=True)
-    """The rows of the momentum in the packed state."""
-    torque: Callable[[Array, Packed, PyTree], Array]
-    """(t, z, args) ↦ the body torque, shape (len(rows), *batch); it must not
-    read the rows it moves."""
+    """The rows that move, in the packed state."""
+    rate: Callable[[Array, Packed, PyTree], Array]
+    """(t, z, args) ↦ the rows' rate of change, shape (len(rows), *batch); it
+    must not read the rows it moves."""
 
     @property
     def reads_unmoved_rows_only(self) -> bool:
-        return True  # `torque` must not read the rows it moves
+        return True  # `rate` must not read the rows it moves
 
     def coefficients(self, coordinates, t, z, h, args):
-        """The change of the momentum rows, h·torque, shape (len(rows), *batch)."""
-        return h * self.torque(t, z, args)
+        """The change of the rows, h·rate, shape (len(rows), *batch)."""
+        return h * self.rate(t, z, args)
 
     def moved(self, z, coefficients):
-        return self._with_momentum_change(z, coefficients)
+        return self._with_rows_changed(z, coefficients)
 
     def moved_change(self, start, change, coefficients):
-        return self._with_momentum_change(change, coefficients)
+        return self._with_rows_changed(change, coefficients)
 
     def moved_back(self, z, coefficients):
-        return self._with_momentum_change(z, -coefficients)
+        return self._with_rows_changed(z, -coefficients)
 
     def pulled_back(self, z, coefficients, cotangent):
         return cotangent, jnp.stack([cotangent[row] for row in self.rows])
 
-    def _with_momentum_change(self, z, change):
+    def _with_rows_changed(self, z, change):
         rows = {row: z[row] + change[k] for k, row in enumerate(self.rows)}
         return jnp.stack([rows.get(r, z[r]) for r in range(z.shape[0])])
 

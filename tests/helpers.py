@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import prkmk_jax as pk
-from prkmk_jax.scenes import ForcedParameters, FreeRigidBody, HarmonicTorque, SymmetricRigidBody, TopParameters
+from prkmk_jax.scenes import ForcedParameters, FreeRigidBody, HarmonicTorque, SatelliteParameters, SymmetricRigidBody, TopParameters
 from prkmk_jax.scenes.base import attitude_of
 from prkmk_jax.scenes.rigid_body import random_rotation, symmetric_initial_state
 
@@ -19,6 +19,17 @@ FORCED_ARGS = ForcedParameters(
     jnp.asarray(INERTIA), HarmonicTorque(jnp.array([0.3, 0.2, 0.1]), jnp.array([1.0, 2.0, 3.0]), jnp.array([0.0, 0.5, 1.0]))
 )
 """The forced body of the tests: the paper's inertia and a harmonic torque."""
+SATELLITE_ARGS = SatelliteParameters(jnp.asarray([3e-3, 2e-3, 1e-3]), jnp.asarray(1.0), jnp.asarray(1.0))
+"""The satellite of the tests: a body about a twentieth of its orbit's
+radius across (nondimensional: μ = m = 1, |r| ≈ 1, an orbit of period 2π)."""
+
+
+def satellite_state() -> pk.BundleElement:
+    """A satellite on a slightly inclined, nearly circular orbit, turning slowly."""
+    attitude = pk.SO3.exp(jnp.asarray([0.4, -0.3, 0.9])).matrix
+    return pk.BundleElement(pk.SO3xR3(attitude, jnp.asarray([1.0, 0.1, -0.05])), jnp.asarray([5e-4, -1e-3, 2e-3, 0.05, 0.95, 0.1]))
+
+
 M0 = np.array([0.250, 0.625, 0.875])
 
 

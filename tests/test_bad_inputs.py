@@ -250,6 +250,16 @@ STATIC = {
         "SatelliteParameters",
     ),
     "satellite, a mass of two numbers": (lambda: SatelliteParameters(jnp.ones(3), jnp.ones(2), 1.0), ValueError, "mass is a scalar"),
+    "splitting of the satellite on SE(3)": (
+        lambda: _integrate(
+            pk.BundleElement(pk.SE3(jnp.eye(3), SATELLITE_STATE.base.translation), SATELLITE_STATE.fiber),
+            method=Satellite(pk.DirectProduct(pk.SE3)).splitting(),
+            field=Satellite(pk.DirectProduct(pk.SE3)),
+            args=SATELLITE_ARGS,
+        ),
+        TypeError,
+        r"Satellite splits on SO\(3\) × ℝ³",
+    ),
     "splitting of the symmetric body on SO(4)": (
         lambda: _integrate(SO4_STATE, method=SYMMETRIC_SO4.splitting(), field=SYMMETRIC_SO4, args=jnp.ones(4)),
         ValueError,

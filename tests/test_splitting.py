@@ -10,13 +10,23 @@ import numpy as np
 import pytest
 
 import prkmk_jax as pk
-from helpers import FORCED_ARGS, TOP_ARGS, bjorck_step, compiled_value_and_grad, gradient_and_central_differences, max_leaf_difference
+from helpers import (
+    FORCED_ARGS,
+    SATELLITE_ARGS,
+    TOP_ARGS,
+    bjorck_step,
+    compiled_value_and_grad,
+    gradient_and_central_differences,
+    max_leaf_difference,
+    satellite_state,
+)
 from prkmk_jax.exact_flows import rotated_array, rotated_rows, turn_of, turned_rows
 from prkmk_jax.groups import sincos
 from prkmk_jax.scenes import (
     ForcedRigidBody,
     FreeRigidBody,
     HeavyTop,
+    Satellite,
     SymmetricRigidBody,
     TopParameters,
     random_rotation,
@@ -41,6 +51,7 @@ CASES = {  # name: (scene, y0, args)
     "forced body": (FORCED, _state(1), FORCED_ARGS),
     "symmetric body": (SYMMETRIC, symmetric_initial_state(random_rotation(0), np.asarray(MOMENTUM)), INERTIA),
     "free body on G×g": (FreeRigidBody(pk.DirectProduct(pk.SO3)), _state(2), INERTIA),
+    "satellite": (Satellite(), satellite_state(), SATELLITE_ARGS),
 }
 
 
@@ -67,7 +78,9 @@ def test_sincos_against_numpy_and_its_derivative(dtype):
 
 
 @pytest.mark.parametrize(
-    "name, free_part", [(name, "axes") for name in ("free body", "heavy top", "forced body", "symmetric body")] + [("heavy top", "exact")]
+    "name, free_part",
+    [(name, "axes") for name in ("free body", "heavy top", "forced body", "symmetric body", "satellite")]
+    + [("heavy top", "exact"), ("satellite", "exact")],
 )
 def test_the_parts_add_up_to_the_field(name, free_part):
     """Σ_parts d/dh φ_part(h)(z) at h = 0, through each part's flow, equals
@@ -87,13 +100,13 @@ def test_the_parts_add_up_to_the_field(name, free_part):
     np.testing.assert_allclose(total, scene.embedding_field(t, scene.to_embedding(y0), args), atol=1e-14)
 
 
-@pytest.mark.parametrize("name", ["free body", "heavy top", "symmetric body"])
+@pytest.mark.parametrize("name", ["free body", "heavy top", "symmetric body", "satellite"])
 def test_packing_round_trips(name):
     scene, y0, args = CASES[name]
     assert max_leaf_difference(scene.unpack(scene.pack(y0, args), y0, args), y0) == 0
 
 
-@pytest.mark.parametrize("name", ["free body", "heavy top", "symmetric body"])
+@pytest.mark.parametrize("name", ["free body", "heavy top", "symmetric body", "satellite"])
 def test_each_part_is_an_exact_flow(name):
     """φ(a + b) = φ(b)∘φ(a): what the exact flow of an autonomous part does,
     and what merging adjacent sub-steps relies on."""
@@ -208,6 +221,8 @@ def _batch_of(y0, batch, seed):
     initial attitude (turned by random rotations from `seed` on)."""
     turns = jnp.asarray(np.stack([random_rotation(seed + k) for k in range(batch)]))
     ys = jax.tree.map(lambda a: jnp.broadcast_to(a, (batch, *a.shape)), y0)
+    if isinstance(y0.base, pk.SO3xR3):
+        return pk.BundleElement(pk.SO3xR3(turns @ ys.base.rotation, ys.base.translation), ys.fiber)
     return pk.BundleElement(type(y0.base)(turns @ ys.base.matrix), ys.fiber)
 
 
@@ -292,7 +307,7 @@ def test_rotated_array_turns_the_rows_as_rotated_rows_does(shape):
             assert np.array_equal(whole[unmoved], np.asarray(z)[unmoved])
 
 
-@pytest.mark.parametrize("name", ["free body", "heavy top", "forced body", "symmetric body"])
+@pytest.mark.parametrize("name", ["free body", "heavy top", "forced body", "symmetric body", "satellite"])
 def test_each_part_declares_whether_it_reads_the_rows_it_moves(name):
     """`reads_unmoved_rows_only` against the rows each flow moves and the rows
     its coefficients depend on (their Jacobian), both ways: a part that

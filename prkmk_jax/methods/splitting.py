@@ -73,8 +73,8 @@ class Splitting(AbstractOfOneScene):
     **Arguments:**
 
     - `scene`: a scene that splits (`FreeRigidBody`, `HeavyTop`,
-      `ForcedRigidBody`, `SymmetricRigidBody` on SO(3)×SO(3)); also built by
-      its `splitting()` method.
+      `ForcedRigidBody`, `Satellite`, `SymmetricRigidBody` on SO(3)×SO(3));
+      also built by its `splitting()` method.
     - `coefficients`: `None` for the Strang splitting (order 2), or a
       symmetric composition of it (`suzuki_5`, `kahan_li_6`, `kahan_li_8`,
       …; order `coefficients.order`). The composed step is unrolled, and

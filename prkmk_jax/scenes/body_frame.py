@@ -1,7 +1,7 @@
 """The rigid body's frame for the exact-flow splittings: the state (Q, Π)
 packed components first in the body axes ordered by inertia, and the axis
 rotations ½Πᵢ²/Iᵢ of the kinetic energy on it. SO(3)-specific; the generic
-exact flows (`AxisRotation`, `MomentumKick`) are in `prkmk_jax.exact_flows`.
+exact flows (`AxisRotation`, `Shift`) are in `prkmk_jax.exact_flows`.
 
 The attitude is packed as its representation stores it: a rotation matrix
 row-major (rows 0–8, Π in rows 9–11), or a unit quaternion (w, x, y, z)
@@ -17,7 +17,7 @@ import numpy as np
 from jaxtyping import Array
 
 from .._bundles import BundleElement
-from ..exact_flows import AxisRotation, MomentumKick, Packed, renormalized_rotations
+from ..exact_flows import AxisRotation, Packed, Shift, renormalized_rotations
 from ..groups.base import AbstractLieGroup
 from ..groups.quaternion import UnitQuaternion
 from ..groups.so3 import SO3
@@ -108,11 +108,11 @@ Attitude = type[AbstractLieGroup]
 """How a packed body state holds the attitude: `SO3` (a matrix) or `UnitQuaternion`."""
 
 
-def momentum_kick(attitude: Attitude, torque) -> MomentumKick:
+def momentum_kick(attitude: Attitude, torque) -> Shift:
     """The kick Π ↦ Π + h·`torque`(t, z, args) on a body state packed with
     `attitude` (Π in rows 9–11 after a matrix, 4–6 after a quaternion)."""
     first = 4 if attitude is UnitQuaternion else 9
-    return MomentumKick((first, first + 1, first + 2), torque)
+    return Shift((first, first + 1, first + 2), torque)
 
 
 def packed_in_frame(y: BundleElement, frame: InertiaOrderedFrame) -> Packed:

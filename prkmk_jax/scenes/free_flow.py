@@ -61,7 +61,7 @@ from jaxtyping import Array, Float
 
 from .. import elliptic, exact_flows
 from .._bundles import BundleElement
-from ..groups import SO3, hat
+from ..groups import SO3, UnitQuaternion, hat
 from .base import attitude_like, rotation_matrix
 from .body_frame import Attitude, InertiaOrderedFrame, packed_in_frame, unpacked_from_frame
 
@@ -254,9 +254,13 @@ class FreeBodyFlow(exact_flows.AbstractExactFlow):
 
     def moved(self, z, coefficients):
         moments, h = coefficients
-        y = unpacked_from_frame(z, self.attitude, self.frame)
+        # The body's rows come first; rows after them (a position and its
+        # momentum, `Satellite`) are not the free body's and stand still.
+        body_rows = 7 if self.attitude is UnitQuaternion else 12
+        y = unpacked_from_frame(z[:body_rows], self.attitude, self.frame)
         q, pi = free_body_flow(rotation_matrix(y.base), y.fiber, moments, h)
-        return packed_in_frame(BundleElement(attitude_like(y.base, q), pi), self.frame)
+        moved = packed_in_frame(BundleElement(attitude_like(y.base, q), pi), self.frame)
+        return moved if z.shape[0] == body_rows else jnp.concatenate([moved, z[body_rows:]])
 
     def moved_change(self, start, change, coefficients):
         # Rounded relative to the state, not to the change: the closed form

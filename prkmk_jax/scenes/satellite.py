@@ -20,8 +20,18 @@ the exact flow.
 
 The smallest model that is exact for it: the translation enters the
 kinetic energy without the attitude, so SO(3) × ℝ³ (`SO3xR3`, whose
-cotangent bundle is a `Cotangent`) carries it; on SE(3) the same body
-would move with body-frame velocities and the Coriolis term p × Ω.
+cotangent bundle is a `Cotangent`) carries it. On SE(3)
+(`DirectProduct(SE3)`) the same body moves with body-frame velocities:
+its linear momentum is held in the body frame, P = Rᵀp, and turns with
+it, P' = P × Ω + RᵀF (Π' gains P × P/m = 0); the state is embedded with
+p = RP, so both models have the same embedding and reference.
+
+It splits (`splitting()`, on SO(3) × ℝ³) into the potential's kick
+(Π, p) ↦ (Π + hτ, p + hF), the drift r ↦ r + hp/m and the rotation's
+kinetic energy, as three axis terms or the free body's exact flow
+(`free_part`). Each part's Hamiltonian is invariant under turning the
+whole system, (R, r, p) ↦ (QR, Qr, Qp), so each part keeps RΠ + r × p,
+and the splitting keeps it to round-off.
 """
 
 from typing import ClassVar, Literal
@@ -31,9 +41,13 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from .. import exact_flows
 from .._bundles import AbstractBundle, BundleElement, Cotangent, DirectProduct
-from ..groups import SO3, SO3xR3, hat
-from .base import AbstractScene, checked_moments, checked_parameters
+from ..groups import SE3, SO3, SO3xR3, hat
+from ..groups.pose import AbstractRotationAndTranslation
+from . import body_frame
+from .base import AbstractScene, checked_moments, checked_parameters, rotation_matrix
+from .free_flow import FreeBodyFlow
 
 
 class SatelliteParameters(eqx.Module):
@@ -82,27 +96,72 @@ def torque_and_force(rotation: Array, position: Array, args: SatelliteParameters
     return -gradient_turn, -gradient_position
 
 
-def _pose(y: BundleElement) -> SO3xR3:
-    if not isinstance(y.base, SO3xR3):
-        raise TypeError(f"a Satellite's state lives on SO3xR3 (attitude and position), got a {type(y.base).__name__} base.")
+def _pose(y: BundleElement) -> AbstractRotationAndTranslation:
+    if not isinstance(y.base, (SO3xR3, SE3)):
+        raise TypeError(f"a Satellite's state lives on SO3xR3 or SE3 (attitude and position), got a {type(y.base).__name__} base.")
     return y.base
 
 
-class Satellite(AbstractScene):
+def _rows(x: Array) -> Array:
+    """Components first (`exact_flows.Packed`)."""
+    return jnp.moveaxis(x, -1, 0)
+
+
+def _columns(z: Array) -> Array:
+    """Components last: `_rows`' inverse."""
+    return jnp.moveaxis(z, 0, -1)
+
+
+POSITION_ROWS = (12, 13, 14)
+"""Where the packed state holds r (after the body's R and Π, `body_frame`)."""
+LINEAR_MOMENTUM_ROWS = (15, 16, 17)
+"""Where it holds p."""
+
+
+def gravity_kick(frame: body_frame.InertiaOrderedFrame, moments: Array) -> exact_flows.Shift:
+    """The potential's flow (Π, p) ↦ (Π + hτ, p + hF) on the packed state
+    (`Satellite.pack`): τ and F by `torque_and_force` from the relabelled
+    matrix R' = R·P and moments I[σ], which give the same potential. Turning
+    R' by exp(ε̂) turns R by exp(det P·(Pε)^), so −∂V/∂ε there is the
+    parity times τ in the frame's components."""
+    ordered = frame.vector(moments)
+
+    def torque_and_force_rows(t, z, args: SatelliteParameters):
+        rotation = _columns(z[:9]).reshape(*z.shape[1:], 3, 3)
+        in_frame = eqx.tree_at(lambda a: a.inertia, args, ordered)
+        torque, force = torque_and_force(rotation, _columns(z[12:15]), in_frame)
+        return jnp.concatenate([frame.parity * _rows(torque), _rows(force)])
+
+    return exact_flows.Shift((9, 10, 11) + LINEAR_MOMENTUM_ROWS, torque_and_force_rows)
+
+
+def _drift_rate(t, z, args: SatelliteParameters) -> Array:
+    return z[15:18] / args.mass
+
+
+DRIFT = exact_flows.Shift(POSITION_ROWS, _drift_rate)
+"""The flow of |p|²/(2m): r ↦ r + hp/m."""
+
+
+class Satellite(AbstractScene, exact_flows.AbstractSplitScene):
     """A rigid body in a central gravity field, orbit and attitude coupled
     (module docstring); `args` is `SatelliteParameters`.
 
     `bundle` is `Cotangent(SO3xR3)` (default), where the product supplies
-    Π × Ω and the generator is ((Ω, p/m), (τ, F)), or `DirectProduct(SO3xR3)`
-    with ((Ω, p/m), (Π × Ω + τ, F)). The state is
-    `BundleElement(SO3xR3(R, r), (Π, p))`."""
+    Π × Ω and the generator is ((Ω, p/m), (τ, F)); `DirectProduct(SO3xR3)`,
+    with ((Ω, p/m), (Π × Ω + τ, F)); or `DirectProduct(SE3)`, the fiber
+    (Π, P) in the body frame, with ((Ω, P/m), (Π × Ω + τ, P × Ω + RᵀF)).
+    The state is `BundleElement(SO3xR3(R, r), (Π, p))` (on SE3,
+    `BundleElement(SE3(R, r), (Π, P))`). The splitting (`splitting()`)
+    lives on SO(3) × ℝ³."""
 
     bundle: AbstractBundle = eqx.field(default_factory=lambda: Cotangent(SO3xR3))
     form: ClassVar[Literal["space", "body"]] = "body"  # pyright: ignore[reportIncompatibleVariableOverride]  # equinox lets a ClassVar implement an AbstractVar
 
     def __check_init__(self):
-        if not isinstance(self.bundle, (Cotangent, DirectProduct)) or self.bundle.base is not SO3xR3:
-            raise TypeError(f"Satellite lives on Cotangent(SO3xR3) or DirectProduct(SO3xR3), got {self.bundle!r}.")
+        on_product = isinstance(self.bundle, (Cotangent, DirectProduct)) and self.bundle.base is SO3xR3
+        if not (on_product or (isinstance(self.bundle, DirectProduct) and self.bundle.base is SE3)):
+            raise TypeError(f"Satellite lives on Cotangent(SO3xR3), DirectProduct(SO3xR3) or DirectProduct(SE3), got {self.bundle!r}.")
 
     def checked_args(self, args: SatelliteParameters) -> SatelliteParameters:
         return checked_parameters("Satellite", args, SatelliteParameters)
@@ -114,12 +173,21 @@ class Satellite(AbstractScene):
         torque, force = torque_and_force(pose.rotation, pose.translation, args)
         if isinstance(self.bundle, DirectProduct):
             torque = torque + jnp.cross(angular, omega)
+        if self.bundle.base is SE3:
+            force = jnp.cross(linear, omega) + jnp.einsum("...ji,...j->...i", pose.rotation, force)
         return jnp.concatenate([omega, linear / args.mass], axis=-1), jnp.concatenate([torque, force], axis=-1)
+
+    def _inertial_momentum(self, y: BundleElement) -> Array:
+        """p: the fiber's linear part, turned to the inertial frame on SE3."""
+        linear = y.fiber[..., 3:]
+        if self.bundle.base is SE3:
+            return jnp.einsum("...ij,...j->...i", _pose(y).rotation, linear)
+        return linear
 
     def invariants(self, y: BundleElement, args: SatelliteParameters) -> dict[str, Array]:
         """The energy and the total angular momentum RΠ + r × p (inertial frame)."""
         rotation, position = _pose(y).rotation, _pose(y).translation
-        angular, linear = y.fiber[..., :3], y.fiber[..., 3:]
+        angular, linear = y.fiber[..., :3], self._inertial_momentum(y)
         kinetic = 0.5 * jnp.sum(angular * angular / args.inertia, axis=-1) + 0.5 * jnp.sum(linear * linear, axis=-1) / args.mass
         spin = jnp.einsum("...ij,...j->...i", rotation, angular)
         return {
@@ -128,14 +196,57 @@ class Satellite(AbstractScene):
         }
 
     def to_embedding(self, y: BundleElement) -> Float[Array, "*batch 18"]:
-        """(R row-major, r, Π, p)."""
+        """(R row-major, r, Π, p), p inertial on either group."""
         pose = _pose(y)
         rotation = pose.rotation
-        return jnp.concatenate([rotation.reshape(*rotation.shape[:-2], 9), pose.translation, y.fiber], axis=-1)
+        flat = rotation.reshape(*rotation.shape[:-2], 9)
+        return jnp.concatenate([flat, pose.translation, y.fiber[..., :3], self._inertial_momentum(y)], axis=-1)
 
     def from_embedding(self, z: Float[Array, "*batch 18"]) -> BundleElement:
         rotation = z[..., :9].reshape(*z.shape[:-1], 3, 3)
+        if self.bundle.base is SE3:
+            body = jnp.einsum("...ji,...j->...i", rotation, z[..., 15:])
+            return BundleElement(SE3(rotation, z[..., 9:12]), jnp.concatenate([z[..., 12:15], body], axis=-1))
         return BundleElement(SO3xR3(rotation, z[..., 9:12]), z[..., 12:])
+
+    # --- the splitting (on SO(3) × ℝ³) ---------------------------------------------
+    def _split_moments(self, args: SatelliteParameters) -> Array:
+        if self.bundle.base is not SO3xR3:
+            raise TypeError(
+                "Satellite splits on SO(3) × ℝ³ (its linear momentum inertial, the drift r ↦ r + hp/m): "
+                f"use Cotangent(SO3xR3) or DirectProduct(SO3xR3), got {self.bundle!r}."
+            )
+        return body_frame.principal_moments(args.inertia, "Satellite", batched=True)
+
+    def exact_flows(self, args: SatelliteParameters, free_part="axes"):
+        """The kick of the potential (outermost), the drift, then the
+        rotation's kinetic energy (module docstring). The drift commutes with
+        the rotation (they move and read disjoint rows), so the Strang step
+        kick · drift · rotation · drift · kick is kick · (the free motion) · kick."""
+        moments = self._split_moments(args)
+        frame = body_frame.InertiaOrderedFrame.of(moments)
+        parts = (gravity_kick(frame, moments), DRIFT)
+        if free_part == "exact":
+            return parts + (FreeBodyFlow(frame, moments, SO3),)
+        return parts + body_frame.body_axis_rotations(frame, moments, SO3)
+
+    def pack(self, y, args: SatelliteParameters):
+        """The body's (R, Π) as `body_frame.packed_body_state` (rows 0–11),
+        then r and p (`POSITION_ROWS`, `LINEAR_MOMENTUM_ROWS`)."""
+        pose = _pose(y)
+        body = BundleElement(SO3(pose.rotation), y.fiber[..., :3])
+        packed = body_frame.packed_body_state(body, self._split_moments(args))
+        return jnp.concatenate([packed, _rows(pose.translation), _rows(y.fiber[..., 3:])])
+
+    def unpack(self, z, like, args: SatelliteParameters):
+        del like  # every such state has the same structure
+        frame = body_frame.InertiaOrderedFrame.of(self._split_moments(args))
+        body = body_frame.unpacked_from_frame(z[:12], SO3, frame)
+        translation, linear = _columns(z[12:15]), _columns(z[15:18])
+        return BundleElement(SO3xR3(rotation_matrix(body.base), translation), jnp.concatenate([body.fiber, linear], axis=-1))
+
+    def onto_group(self, z):
+        return body_frame.renormalized_body_state(z, SO3)
 
 
 def embedding_field(t, z: Float[Array, " 18"], args: SatelliteParameters) -> Float[Array, " 18"]:
