@@ -19,13 +19,6 @@
    in alternation; time a step, loop over unrolled, and compile times: the
    rows that check the default ("auto": the loop from `STAGE_LOOP_BATCH`
    trajectories in the state on).
-4. The splittings' sines and cosines: the Strang and Kahan–Li 6 splittings
-   of the free body, one trajectory and a batch of 1024 in the state, in
-   float64 and float32, each rotation turned through
-   `groups.polynomial_sincos` or through `jnp.sin` and `jnp.cos` (charts
-   that are `Exp` otherwise), in alternation: time a step, and the ratio;
-   the rows that check the rule of `groups.sincos` (the library call for
-   one angle, the polynomials for many).
 
     python benchmarks/throughput.py
     python benchmarks/throughput.py --quick
@@ -34,12 +27,9 @@
 import functools
 import json
 import statistics
-from collections.abc import Callable
 from pathlib import Path
-from typing import ClassVar
 
 import diffrax
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -137,10 +127,7 @@ def _side_by_side(finals, args, steps, rounds):
     """Compile each of `finals` ({name: (Q₀, Π₀, inertia) -> …}, two of
     them) and run them in alternation: µs a step of each, the first's time
     over the second's (the median per-round ratio), and compile seconds."""
-    compiled, compile_s = {}, {}
-    for name, final in finals.items():
-        compiled[name], compile_s[name] = C.compile_fn(final, *args)
-        jax.block_until_ready(compiled[name](*args))
+    compiled, compile_s, _ = C.compile_all(finals, *args)
     times = C.interleaved_times({k: functools.partial(f, *args) for k, f in compiled.items()}, rounds=rounds)
     first, second = finals
     return {k: 1e6 * statistics.median(v) / steps for k, v in times.items()}, C.median_ratio(times, first, second), compile_s
@@ -171,44 +158,6 @@ def stage_layouts(quick, rounds):
     return rows
 
 
-class _TurnedBy(pk.AbstractCoordinates):
-    """`Exp`, a splitting's planar rotations turned by `sines` (one way, whatever the batch; computed once)."""
-
-    sines: Callable = eqx.field(static=True)
-    maps_lines_to_subgroups: ClassVar[bool] = True
-    truncation: None = None
-
-    def group_map(self, group, u):
-        return pk.Exp().group_map(group, u)
-
-    def group_inverse_map(self, g):
-        return pk.Exp().group_inverse_map(g)
-
-    def group_inverse_differential(self, group, u, x):
-        return pk.Exp().group_inverse_differential(group, u, x)
-
-    def planar_rotation(self, angle):
-        return self.sines(angle)
-
-
-def rotations(quick, rounds):
-    rows = []
-    splittings = {"Strang": None, "Kahan–Li 6": pk.kahan_li_6}
-    library = _TurnedBy(lambda a: pk.groups.computed_once(jnp.sin(a), jnp.cos(a)))
-    charts = {"polynomials": _TurnedBy(pk.groups.polynomial_sincos), "jnp.sin, jnp.cos": library}
-    for batch in [8] if quick else [1, 1024]:
-        steps = 10 if quick else max(50, 4000 // batch)
-        qs, pis = C.initial_conditions(batch, seed=3)
-        for dtype in (jnp.float64,) if quick else (jnp.float64, jnp.float32):
-            args = (jnp.asarray(qs, dtype), jnp.asarray(pis, dtype), jnp.asarray(C.INERTIA, dtype))
-            for split_name, coefficients in list(splittings.items())[:1] if quick else splittings.items():
-                finals = {k: C.integrate_final(C.SCENE.splitting(coefficients, chart), steps, H) for k, chart in charts.items()}
-                (step_us, ratio, _), dtype_name = _side_by_side(finals, args, steps, rounds), jnp.dtype(dtype).name
-                rows.append(dict(splitting=split_name, batch=batch, dtype=dtype_name, step_us=step_us, polynomials_over_library=ratio))
-                print(f"{split_name:11s} batch {batch:5d} {dtype_name:8s} µs a step {step_us}  polynomials / jnp {ratio:5.2f}", flush=True)
-    return rows
-
-
 def throughput_table(results: Path) -> str:
     """`throughput.py`: trajectory-steps per second against the batch, compile
     time against the number of stages, and the explicit stage layouts (each
@@ -231,31 +180,16 @@ def throughput_table(results: Path) -> str:
     if "compile_vs_stages" in data:
         rows = [[r["tableau"], str(r["stages"]), r["path"], f"{r['compile_s']:.2f}"] for r in data["compile_vs_stages"]]
         tables.append(C.table(["tableau", "stages", "path", "compile, s"], rows))
-    two_ways = {  # part: (title, the rows' keys, the two ways, the ratio's key and column)
-        "stage_layouts": (
-            "The explicit stage layouts. ",
-            ("bundle", "tableau", "batch"),
-            ("unrolled", "loop"),
-            "loop_over_unrolled",
-            "loop / unrolled",
-        ),
-        "rotations": (
-            "The splittings' sines and cosines. ",
-            ("splitting", "batch", "dtype"),
-            ("polynomials", "jnp.sin, jnp.cos"),
-            "polynomials_over_library",
-            "polynomials / jnp",
-        ),
-    }
-    for part, (title, keys, (a, b), ratio, ratio_column) in ((p, w) for p, w in two_ways.items() if p in data):
-        header = [k.replace("batch", "batch in the state") for k in keys] + [f"µs a step, {a}", f"µs a step, {b}", ratio_column]
+    if "stage_layouts" in data:
+        header = ["bundle", "tableau", "batch in the state", "µs a step, unrolled", "µs a step, loop", "loop / unrolled"]
         rows = [
-            [str(r[k]) for k in keys] + [f"{r['step_us'][a]:.3g}", f"{r['step_us'][b]:.3g}", f"{r[ratio]:.2f}"] for r in data[part]["rows"]
+            [r["bundle"], r["tableau"], str(r["batch"])]
+            + [f"{r['step_us']['unrolled']:.3g}", f"{r['step_us']['loop']:.3g}", f"{r['loop_over_unrolled']:.2f}"]
+            + [f"{r['compile_s']['unrolled']:.2f} / {r['compile_s']['loop']:.2f}"]
+            for r in data["stage_layouts"]["rows"]
         ]
-        if part == "stage_layouts":
-            header.append(f"compile, s ({a} / {b})")
-            rows = [row + [f"{r['compile_s'][a]:.2f} / {r['compile_s'][b]:.2f}"] for row, r in zip(rows, data[part]["rows"])]
-        tables += [title + C.measured_on(data[part]), C.table(header, rows)]
+        header.append("compile, s (unrolled / loop)")
+        tables += ["The explicit stage layouts. " + C.measured_on(data["stage_layouts"]), C.table(header, rows)]
     return "\n\n".join(tables)
 
 
@@ -265,7 +199,7 @@ def tables(results: Path) -> dict[str, str]:
 
 
 def main(argv=None):
-    all_parts = ("throughput", "compile", "layouts", "rotations")
+    all_parts = ("throughput", "compile", "layouts")
     args, out = C.cli(__doc__, argv, lambda p: p.add_argument("--parts", default=",".join(all_parts)))
     rounds = 1 if args.quick else 7
     parts = args.parts.split(",")
@@ -280,8 +214,6 @@ def main(argv=None):
         result["compile_vs_stages"] = compile_vs_stages(args.quick)
     if "layouts" in parts:
         result["stage_layouts"] = dict(machine=C.machine(), rows=stage_layouts(args.quick, rounds))
-    if "rotations" in parts:
-        result["rotations"] = dict(machine=C.machine(), rows=rotations(args.quick, rounds))
     with open(out / "throughput.json", "w") as f:
         json.dump(result, f, indent=1)
     if "throughput" in parts:
