@@ -1,8 +1,7 @@
 """Partitioned Runge–Kutta–Munthe-Kaas integrators on (co)tangent bundles of Lie groups.
 
 The public face, floor by floor (docs: *Architecture*): groups, bundles,
-coordinates and tableaus; methods; scenes; gradients; drivers.
-"""
+coordinates and tableaus; methods; scenes; gradients; drivers."""
 
 from . import compositions as compositions
 from . import diagnostics as diagnostics
@@ -49,6 +48,7 @@ from .coordinates import Cayley as Cayley
 from .coordinates import Exp as Exp
 from .groups import SE3 as SE3
 from .groups import SO3 as SO3
+from .groups import SO3Power as SO3Power
 from .groups import SO3xR3 as SO3xR3
 from .groups import SOn as SOn
 from .groups import UnitQuaternion as UnitQuaternion

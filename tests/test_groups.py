@@ -35,6 +35,7 @@ BASES = {
     "R3": (pk.VectorSpace, lambda v: jnp.asarray(v[:3])),
     "SE3": (pk.SE3, jnp.asarray),
     "SO3xR3": (pk.SO3xR3, jnp.asarray),
+    "SO3-pair": (pk.SO3Power, lambda v: jnp.asarray(v).reshape(2, 3)),
 }
 
 vectors6 = algebra_vectors(dim=6, max_norm=3.0)
@@ -117,6 +118,7 @@ BUNDLES = {
     "semidirect-right-R3": pk.Semidirect(pk.VectorSpace, "right"),
     "semidirect-left-SE3": pk.Semidirect(pk.SE3, "left"),
     "cotangent-SO3xR3": pk.Cotangent(pk.SO3xR3),
+    "cotangent-SO3-pair": pk.Cotangent(pk.SO3Power),
 }
 
 
@@ -125,6 +127,8 @@ def bundle_algebra(bundle, a, b):
         return _so4(a / 2), _so4(b / 2)
     if bundle.base in (pk.SE3, pk.SO3xR3):
         return jnp.asarray(a), jnp.asarray(b)
+    if bundle.base is pk.SO3Power:
+        return jnp.asarray(a).reshape(2, 3), jnp.asarray(b).reshape(2, 3)
     return jnp.asarray(a[:3]), jnp.asarray(b[:3])
 
 
@@ -132,7 +136,7 @@ def tangent_to_algebra(bundle, tangent):
     """The algebra pair of a tangent vector at the identity of the bundle."""
 
     def base_part(t):
-        if isinstance(t, pk.SO3):
+        if isinstance(t, (pk.SO3, pk.SO3Power)):
             return pk.vee(t.matrix)
         if isinstance(t, pk.SOn):
             return t.matrix
@@ -214,7 +218,7 @@ def test_bundle_element_checks():
 
 
 # --- the actions a PRKMK step uses instead of forming f(U) ------------------------------
-@pytest.mark.parametrize("name", ["SO3", "SO4", "R3", "SO3xR3"])
+@pytest.mark.parametrize("name", ["SO3", "SO4", "R3", "SO3xR3", "SO3-pair"])
 @given(a=vectors6, b=vectors6)
 def test_adjoint_of_exp_and_cayley_act_without_the_matrix(name, a, b):
     """exp_adjoint/cayley_adjoint agree with forming exp(u)/cay(u) and acting."""
@@ -285,7 +289,7 @@ def test_so3_rotation_coefficients_differentiate_as_their_series(theta):
     np.testing.assert_allclose(reverse, 0.7 * da_exact - 1.3 * db_exact, rtol=1e-12)
 
 
-@pytest.mark.parametrize("name", ["SO3", "SO4", "R3", "SE3", "SO3xR3"])
+@pytest.mark.parametrize("name", ["SO3", "SO4", "R3", "SE3", "SO3xR3", "SO3-pair"])
 @pytest.mark.parametrize("alpha", [0.5, -0.5, 2.0])
 @given(a=vectors6, b=vectors6)
 def test_inverse_shifted_ad_solves_the_linear_system(name, alpha, a, b):
@@ -333,7 +337,7 @@ def _written_with_the_required_methods_only(group):
     return Plain
 
 
-@pytest.mark.parametrize("name", ["SO3", "SO4"])
+@pytest.mark.parametrize("name", ["SO3", "SO4", "SO3-pair"])
 def test_the_defaults_agree_with_the_closed_forms(name):
     """What a group need not write (the differentials, the actions, the
     changes, the fiber solve) agrees, on a batch, with the closed forms SO(3)

@@ -6,6 +6,7 @@ from .se3 import SE3 as SE3
 from .so3 import SO3 as SO3
 from .so3 import hat as hat
 from .so3 import vee as vee
+from .so3_power import SO3Power as SO3Power
 from .so3_r3 import SO3xR3 as SO3xR3
 from .son import SOn as SOn
 from .trig import computed_once as computed_once
