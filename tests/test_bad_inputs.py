@@ -11,10 +11,12 @@ import pytest
 import prkmk_jax as pk
 from helpers import INERTIA, TOP_ARGS, PositiveReals, initial_state, rigid_body_field
 from prkmk_jax.scenes import (
+    DoublePendulum,
     ForcedParameters,
     ForcedRigidBody,
     FreeRigidBody,
     HeavyTop,
+    PendulumParameters,
     Satellite,
     SatelliteParameters,
     SphericalTop,
@@ -52,6 +54,8 @@ QUATERNION_BODY = FreeRigidBody(pk.Cotangent(pk.UnitQuaternion))
 SATELLITE_STATE = pk.BundleElement(pk.SO3xR3(jnp.eye(3), jnp.asarray([1.0, 0.0, 0.0])), jnp.asarray([0.0, 0.0, 1e-3, 0.0, 1.0, 0.0]))
 SATELLITE_ARGS = SatelliteParameters(jnp.asarray([3e-3, 2e-3, 1e-3]), 1.0, 1.0)
 SATELLITE = Satellite()
+PENDULUM_ARGS = PendulumParameters(jnp.ones((2, 3)), jnp.ones(2), jnp.ones((2, 3)), jnp.ones(3), 9.81)
+PENDULUM_STATE = pk.BundleElement(pk.SO3Power(jnp.stack([jnp.eye(3)] * 2)), jnp.zeros((2, 3)))
 
 
 def _satellite(args):
@@ -250,6 +254,19 @@ STATIC = {
         "SatelliteParameters",
     ),
     "satellite, a mass of two numbers": (lambda: SatelliteParameters(jnp.ones(3), jnp.ones(2), 1.0), ValueError, "mass is a scalar"),
+    # the double pendulum
+    "SO3Power of one matrix": (lambda: pk.SO3Power(jnp.eye(3)), ValueError, r"\(\.\.\., n, 3, 3\)"),
+    "double pendulum on T*SO(3)": (lambda: DoublePendulum(pk.Cotangent(pk.SO3)), TypeError, "DoublePendulum lives on"),
+    "double pendulum, a joint of two numbers": (
+        lambda: PendulumParameters(jnp.ones((2, 3)), jnp.ones(2), jnp.ones((2, 3)), jnp.ones(2), 9.81),
+        ValueError,
+        r"joint must have shape \(3,\)",
+    ),
+    "double pendulum, a state of one body": (
+        lambda: DoublePendulum()(0.0, pk.BundleElement(pk.SO3(jnp.eye(3)), jnp.zeros(3)), PENDULUM_ARGS),
+        TypeError,
+        "SO3Power with two bodies",
+    ),
     "splitting of the satellite on SE(3)": (
         lambda: _integrate(
             pk.BundleElement(pk.SE3(jnp.eye(3), SATELLITE_STATE.base.translation), SATELLITE_STATE.fiber),
@@ -388,6 +405,13 @@ RUNTIME = {
         lambda p: pk.SE3(jnp.eye(3), p).check().translation,
         jnp.array([0.0, jnp.nan, 0.0]),
         "SE3 translation is not finite",
+    ),
+    "double pendulum, a negative mass": (
+        lambda m: DoublePendulum().invariants(PENDULUM_STATE, PendulumParameters(jnp.ones((2, 3)), m, jnp.ones((2, 3)), jnp.ones(3), 9.81))[
+            "energy"
+        ],
+        jnp.array([1.0, -1.0]),
+        "both masses must be > 0",
     ),
     "satellite, a negative mass": (
         lambda m: _satellite(SatelliteParameters(SATELLITE_ARGS.inertia, m, 1.0)),

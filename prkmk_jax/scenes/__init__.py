@@ -1,5 +1,7 @@
 from .base import AbstractScene as AbstractScene
 from .base import derived_embedding_field as derived_embedding_field
+from .double_pendulum import DoublePendulum as DoublePendulum
+from .double_pendulum import PendulumParameters as PendulumParameters
 from .forced_body import ForcedParameters as ForcedParameters
 from .forced_body import ForcedRigidBody as ForcedRigidBody
 from .forced_body import HarmonicTorque as HarmonicTorque
