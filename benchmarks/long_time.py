@@ -14,20 +14,21 @@ embedding run through `diffeqsolve` with `SaveAt(ts=…)` (dense output).
 "At matched cost": for each PRKMK run, the smallest error any diffrax run
 reached in no more wall time, divided by the PRKMK run's error.
 
-With `--satellite`: the satellite (`scenes.Satellite`) over 10⁵ steps of
-h = 0.01 (about 160 orbits), on each model (T*(SO(3) × ℝ³), the direct
-products over SO(3) × ℝ³ and SE(3)) with each method that applies, and
-the splittings: the largest drifts of the energy and of the total angular
-momentum, the error after the first hundredth of the run against DOP853,
-and the time per step (median of interleaved rounds);
-`long_time_satellite.json`.
+With `--scene satellite` or `--scene double_pendulum`: that scene
+(`scenes.Satellite`, `scenes.DoublePendulum`) over 10⁵ steps of h = 0.01,
+on each model it lives on, with each method that applies (`SCENE_RUNS`):
+the largest drifts of its invariants, the error at the first saved state
+against DOP853 (both scenes' motion is chaotic: over a whole run no
+solution stays near the exact one), the implicit iterations a step, and
+the time a step (median of interleaved rounds); `long_time_<scene>.json`.
 
     python benchmarks/long_time.py
     python benchmarks/long_time.py --quick
-    python benchmarks/long_time.py --satellite
+    python benchmarks/long_time.py --scene satellite
 """
 
 import csv
+import functools
 import json
 from pathlib import Path
 
@@ -35,10 +36,12 @@ import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 
 import _common as C
 import prkmk_jax as pk
-from prkmk_jax.scenes import Satellite, SatelliteParameters
+from prkmk_jax.scenes import DoublePendulum, PendulumParameters, Satellite, SatelliteParameters
+from prkmk_jax.scenes.double_pendulum import body_momenta
 
 KEYS = ("energy", "momentum_norm", "spatial_momentum", "orthogonality")
 
@@ -47,12 +50,8 @@ def drifts(q, pi, inertia=C.INERTIA):
     """Relative drifts of the scene's invariants over a run
     (`diagnostics.max_drift`), and the largest entry of QᵀQ − I."""
     inv = C.invariants(q, pi, inertia)
-    return dict(
-        energy=float(pk.diagnostics.max_drift(inv["energy"], relative=True)),
-        momentum_norm=float(pk.diagnostics.max_drift(inv["momentum norm"], relative=True)),
-        spatial_momentum=float(pk.diagnostics.max_drift(inv["spatial momentum"], relative=True)),
-        orthogonality=float(np.max(inv["orthogonality"])),
-    )
+    relative = {key: float(pk.diagnostics.max_drift(inv[key.replace("_", " ")], relative=True)) for key in KEYS[:3]}
+    return relative | dict(orthogonality=float(np.max(inv["orthogonality"])))
 
 
 def _prkmk_fixed(method, t_end):
@@ -94,8 +93,6 @@ def _runs(quick, t_end):
         return C.SCENE.method(tab)
 
     for name, tab in (("SE", pk.symplectic_euler), ("SV", pk.stormer_verlet), ("Lobatto4", pk.lobatto_iiia_iiib4)):
-        if quick and name != "SV":
-            continue
         runs += [(f"PRKMK {name} exp", "prkmk", "h", h, _prkmk_fixed(body(tab), t_end)) for h in fixed_h]
     # Order 6 and 8 (a step of h is 9 or 17 Störmer–Verlet steps for the
     # compositions, so their steps are longer).
@@ -105,8 +102,6 @@ def _runs(quick, t_end):
         ("SV∘KahanLi6", pk.Composition(body(pk.stormer_verlet), pk.kahan_li_6)),
         ("SV∘KahanLi8", pk.Composition(body(pk.stormer_verlet), pk.kahan_li_8)),
     ):
-        if quick and name != "SV∘KahanLi6":
-            continue
         runs += [(f"PRKMK {name} exp", "prkmk", "h", h, _prkmk_fixed(method, t_end)) for h in high_h]
     if not quick:
         solver = C.prkmk_solver(pk.lobatto_iiia_iiib4, adaptive=True)
@@ -114,25 +109,20 @@ def _runs(quick, t_end):
             ("PRKMK Lobatto4 exp adaptive", "prkmk", "rtol", r, _dense(C.prkmk_final, solver, t_end, True)) for r in [1e-6, 1e-8, 1e-10]
         ]
     for name, solver in (("Tsit5", diffrax.Tsit5()), ("Dopri5", diffrax.Dopri5()), ("Dopri8", diffrax.Dopri8())):
-        if quick and name != "Tsit5":
-            continue
         runs += [(f"diffrax {name} adaptive", "diffrax", "rtol", r, _dense(C.diffrax_final, solver, t_end, True)) for r in rtols]
     if not quick:
         runs += [("diffrax Tsit5 fixed", "diffrax", "h", h, _dense(C.diffrax_final, diffrax.Tsit5(), t_end, False)) for h in fixed_h]
-    return runs
+    # --quick: one run of each kind of code.
+    return [r for r in runs if not quick or r[0] in ("PRKMK SV exp", "PRKMK SV∘KahanLi6 exp", "diffrax Tsit5 adaptive")]
 
 
 def matched_cost(rows):
-    out = []
-    peers = [r for r in rows if r["family"] == "diffrax" and r["ok"]]
-    for r in rows:
-        if r["family"] != "prkmk" or not r["ok"]:
-            continue
+    peers, out = [r for r in rows if r["family"] == "diffrax" and r["ok"]], []
+    for r in (r for r in rows if r["family"] == "prkmk" and r["ok"]):
         cheaper = [p for p in peers if p["wall_s"] <= r["wall_s"]]
         entry = dict(method=r["method"], parameter=r["parameter"], wall_s=r["wall_s"])
-        for key in ("energy", "momentum_norm", "spatial_momentum"):
-            best = min((p[key] for p in cheaper), default=float("nan"))
-            entry[f"{key}_ratio"] = best / max(r[key], 1e-300) if cheaper else float("nan")
+        for key in KEYS[:3]:
+            entry[f"{key}_ratio"] = min(p[key] for p in cheaper) / max(r[key], 1e-300) if cheaper else float("nan")
         out.append(entry)
     return out
 
@@ -168,15 +158,7 @@ def long_time_table(results: Path) -> str:
     time each run took."""
     data = C.results_file(results, "long_time.json")
     rows = [
-        [
-            r["method"],
-            f"{r['kind']} = {r['parameter']:g}",
-            f"{r['wall_s']:.3f}",
-            C.number(r["energy"], ".1e"),
-            C.number(r["momentum_norm"], ".1e"),
-            C.number(r["spatial_momentum"], ".1e"),
-            C.number(r["orthogonality"], ".1e"),
-        ]
+        [r["method"], f"{r['kind']} = {r['parameter']:g}", f"{r['wall_s']:.3f}"] + [C.number(r[k], ".1e") for k in KEYS]
         for r in data["rows"]
     ]
     headers = ["method", "setting", "s", "energy", "\\|Π\\|", "QΠ", "QᵀQ − I"]
@@ -189,75 +171,90 @@ SATELLITE_MODELS = {
     "(SO(3)×ℝ³)×ℝ⁶": pk.DirectProduct(pk.SO3xR3),
     "SE(3)×ℝ⁶": pk.DirectProduct(pk.SE3),
 }
+PENDULUM_ARGS = PendulumParameters(
+    [[0.02, 0.03, 0.01], [0.015, 0.01, 0.02]], [1.0, 0.8], [[0.05, 0, -0.5], [0, 0.03, -0.4]], [0.02, 0, -1], 9.81
+)
 
 
-def satellite_methods():
-    """(model, method name, scene, method) for each model and method that applies to it."""
-    for model, bundle in SATELLITE_MODELS.items():
-        scene = Satellite(bundle)
-        yield model, "SV", scene, scene.method(pk.stormer_verlet)
-        yield model, "Lobatto 4 Cayley", scene, scene.method(pk.lobatto_iiia_iiib4, pk.Cayley())
-        if isinstance(bundle, pk.DirectProduct):
-            yield model, "RKMK 8 Cayley", scene, scene.method(pk.dormand_prince_8, pk.Cayley())
-    scene = Satellite()
-    splittings = (("Strang", {}), ("Strang, exact free part", {"free_part": "exact"}), ("Kahan–Li 6", {"coefficients": pk.kahan_li_6}))
-    for name, options in splittings:
-        yield "T*(SO(3)×ℝ³)", f"splitting {name}", scene, scene.splitting(**options)
-
-
-def satellite(quick: bool, rounds: int) -> dict:
-    """The `--satellite` rows (module docstring)."""
-    h, steps = 0.01, 200 if quick else 100_000
+def satellite_runs():
+    """(y0, args, steps between saves, [(model, method name, scene, method)]) of the satellite."""
     attitude = pk.SO3.exp(jnp.asarray([0.4, -0.3, 0.9])).matrix
     y0 = pk.BundleElement(pk.SO3xR3(attitude, jnp.asarray([1.0, 0.1, -0.05])), jnp.asarray([5e-4, -1e-3, 2e-3, 0.05, 0.95, 0.1]))
-    # The error at the first saved state, a hundredth of the run: the attitude's
-    # motion is chaotic, and over the whole run no solution stays near the exact one.
-    z0, reference = Satellite().to_embedding(y0), Satellite().reference_solution(y0, [h * steps / 100], SATELLITE_ARGS)[-1]
-    runs = {f"{name} on {model}": (model, name, scene, method) for model, name, scene, method in satellite_methods()}
+    runs = []
+    for model, bundle in SATELLITE_MODELS.items():
+        scene, tableaus = Satellite(bundle), {"SV": (pk.stormer_verlet, pk.Exp()), "Lobatto 4 Cayley": (pk.lobatto_iiia_iiib4, pk.Cayley())}
+        tableaus |= {"RKMK 8 Cayley": (pk.dormand_prince_8, pk.Cayley())} if isinstance(bundle, pk.DirectProduct) else {}
+        runs += [(model, name, scene, scene.method(*tableau)) for name, tableau in tableaus.items()]
+    scene = Satellite()
+    splittings = (("Strang", {}), ("Strang, exact free part", {"free_part": "exact"}), ("Kahan–Li 6", {"coefficients": pk.kahan_li_6}))
+    return y0, SATELLITE_ARGS, 1000, runs + [("T*(SO(3)×ℝ³)", f"splitting {n}", scene, scene.splitting(**o)) for n, o in splittings]
 
-    def run(scene, method):
-        return lambda z0, args: pk.integrate(method, scene, scene.from_embedding(z0), 0.0, h, steps, args, save_every=steps // 100).ys
 
-    compiled, compile_s, outputs = C.compile_all({key: run(*r[2:]) for key, r in runs.items()}, z0, SATELLITE_ARGS)
-    times = C.interleaved_times(compiled, z0, SATELLITE_ARGS, rounds=rounds)
+def pendulum_runs():
+    """As `satellite_runs`, the double pendulum (its links swinging by about 0.2 rad: near a quasi-periodic motion)."""
+    rotations = jnp.stack([pk.SO3.exp(jnp.array([0.1, -0.05, 0.2])).matrix, pk.SO3.exp(jnp.array([-0.1, 0.1, 0.05])).matrix])
+    y0 = pk.BundleElement(pk.SO3Power(rotations), body_momenta(rotations, jnp.array([[0.1, 0.2, -0.3], [0.1, -0.2, 0.5]]), PENDULUM_ARGS))
+    cotangent, direct = DoublePendulum(), DoublePendulum(pk.DirectProduct(pk.SO3Power))
+    sv, newton = cotangent.method(pk.stormer_verlet), cotangent.method(pk.stormer_verlet, root_finder=optx.Newton(1e-12, 1e-12))
+    runs = [("SV", sv), ("SV, Newton", newton), ("symmetrized SV", pk.Symmetrized(sv))]
+    runs += [("Lobatto 4 Cayley", cotangent.method(pk.lobatto_iiia_iiib4, pk.Cayley()))]
+    on_direct = [("SV", direct.method(pk.stormer_verlet)), ("RKMK 8 Cayley", direct.method(pk.dormand_prince_8, pk.Cayley()))]
+    return y0, PENDULUM_ARGS, 100, [("T*SO(3)²", n, cotangent, m) for n, m in runs] + [("SO(3)²×ℝ⁶", n, direct, m) for n, m in on_direct]
+
+
+SCENE_RUNS = {"satellite": satellite_runs, "double_pendulum": pendulum_runs}
+
+
+def scene_rows(scene_name: str, quick: bool, rounds: int) -> dict:
+    """The `--scene` rows (module docstring)."""
+    y0, args, every, runs = SCENE_RUNS[scene_name]()
+    h, steps, every = 0.01, 20 * every if quick else 100_000, every // 10 if quick else every
+    z0, reference = runs[0][2].to_embedding(y0), runs[0][2].reference_solution(y0, [h * every], args)[-1]  # every model embeds alike
+    runs = {f"{name} on {model}": (model, name, scene, method) for model, name, scene, method in runs}
+
+    def run(z0, args, scene, method):
+        trajectory = pk.integrate(method, scene, scene.from_embedding(z0), 0.0, h, steps, args, save_every=every)
+        return trajectory.ys, trajectory.stats["num_iterations"]
+
+    compiled, compile_s, outputs = C.compile_all({k: functools.partial(run, scene=r[2], method=r[3]) for k, r in runs.items()}, z0, args)
+    times = C.interleaved_times(compiled, z0, args, rounds=rounds)
     rows = []
     for key, (model, name, scene, _) in runs.items():
-        invariants, first = scene.invariants(outputs[key], SATELLITE_ARGS), jax.tree.map(lambda a: a[1], outputs[key])
-        row = dict(model=model, method=name, step_us=1e6 * float(np.median(times[key])) / steps, compile_s=compile_s[key])
-        row["error"] = float(np.max(np.abs(np.asarray(scene.to_embedding(first)) - reference)))
-        rows.append(row | {k: float(pk.diagnostics.max_drift(invariants[k], relative=True)) for k in ("energy", "angular momentum")})
-        print(f"{key:45s} " + "  ".join(f"{k}={v:.2e}" for k, v in rows[-1].items() if isinstance(v, float)), flush=True)
-    return dict(machine=C.machine(), h=h, steps=steps, rows=rows)
+        (ys, iterations), row = outputs[key], dict(model=model, method=name, compile_s=compile_s[key])
+        invariants = {k: v for k, v in scene.invariants(ys, args).items() if k != "orthogonality"}
+        row |= dict(step_us=1e6 * float(np.median(times[key])) / steps, iterations=int(iterations) / steps)
+        row["error"] = float(np.max(np.abs(np.asarray(scene.to_embedding(jax.tree.map(lambda a: a[1], ys))) - reference)))
+        for k, v in invariants.items():  # the largest drift (relative), and its growth: last tenth of the run over first
+            error, tenth = np.max(np.abs(np.asarray(v - v[0])).reshape(len(v), -1), axis=1), len(v) // 10
+            row |= {k: float(np.max(error) / np.max(np.abs(v[0]))), f"{k} growth": float(np.max(error[-tenth:]) / np.max(error[1:tenth]))}
+        rows.append(row)
+    return dict(machine=C.machine(), h=h, steps=steps, every=every, rows=rows)
 
 
-def satellite_table(results: Path) -> str:
-    """`long_time.py --satellite`: each model and method over 10⁵ steps."""
-    data = C.results_file(results, "long_time_satellite.json")
-    rows = [
-        [r["method"], r["model"], f"{r['step_us']:.2f}", f"{r['compile_s']:.1f}"]
-        + [C.number(r[k], ".1e") for k in ("error", "energy", "angular momentum")]
-        for r in data["rows"]
-    ]
-    headers = ["method", "model", "µs a step", "compile s", f"error at T = {data['h'] * data['steps'] / 100:g}", "energy", "RΠ + r × p"]
-    return C.measured_on(data) + f" {data['steps']:,} steps of h = {data['h']:g}.\n\n" + C.table(headers, rows)
+def scene_table(results: Path, scene_name: str) -> str:
+    """`long_time.py --scene NAME`: each model and method over 10⁵ steps."""
+    data = C.results_file(results, f"long_time_{scene_name}.json")
+    invariants = [k for k in data["rows"][0] if k not in ("model", "method", "compile_s", "step_us", "iterations", "error")]
+    first = [[r["method"], r["model"], f"{r['step_us']:.2f}", f"{r['iterations']:.1f}", f"{r['compile_s']:.1f}"] for r in data["rows"]]
+    rows = [row + [C.number(r[k], ".2g") for k in ["error"] + invariants] for row, r in zip(first, data["rows"])]
+    headers = ["method", "model", "µs a step", "iterations a step", "compile s", f"error at T = {data['h'] * data['every']:g}"]
+    return C.measured_on(data) + f" {data['steps']:,} steps of h = {data['h']:g}.\n\n" + C.table(headers + invariants, rows)
 
 
 def tables(results: Path) -> dict[str, str]:
     """This script's tables, made from those of its results files that `results` holds (`write_tables.py`)."""
-    makers = {"long_time": (long_time_table, "long_time.json"), "satellite": (satellite_table, "long_time_satellite.json")}
-    return {name: make(results) for name, (make, file) in makers.items() if (results / file).exists()}
+    found = {"long_time": long_time_table(results)} if (results / "long_time.json").exists() else {}
+    return found | {name: scene_table(results, name) for name in SCENE_RUNS if (results / f"long_time_{name}.json").exists()}
 
 
 def main(argv=None):
-    args, out = C.cli(__doc__, argv, lambda parser: parser.add_argument("--satellite", action="store_true", help="the satellite's rows"))
-    if args.satellite:
-        result = satellite(args.quick, rounds=1 if args.quick else 5)
-        (out / "long_time_satellite.json").write_text(json.dumps(result, indent=1))
+    args, out = C.cli(__doc__, argv, lambda parser: parser.add_argument("--scene", choices=list(SCENE_RUNS), help="that scene's rows"))
+    if args.scene:
+        result = scene_rows(args.scene, args.quick, rounds=1 if args.quick else 3)
+        (out / f"long_time_{args.scene}.json").write_text(json.dumps(result, indent=1))
         return out
-    t_end = 20.0 if args.quick else 1000.0
-    repeats = 1 if args.quick else 3
-    q0, pi0 = C.initial_conditions(None)
-    q0, pi0, inertia = jnp.asarray(q0), jnp.asarray(pi0), jnp.asarray(C.INERTIA)
+    t_end, repeats = (20.0, 1) if args.quick else (1000.0, 3)
+    q0, pi0, inertia = (jnp.asarray(x) for x in (*C.initial_conditions(None), C.INERTIA))
     rows = []
     for name, family, kind, param, make in _runs(args.quick, t_end):
         compiled, compile_s = C.compile_fn(make(param), q0, pi0, inertia)

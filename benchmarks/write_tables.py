@@ -26,7 +26,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 """The checkout whose documents and `benchmarks/results` this script reads and writes."""
 SCRIPTS = ("accuracy", "long_time", "round_off", "stability", "throughput", "gradients", "ensembles")
-DOCUMENTS = ("benchmarks/README.md", "docs/concepts/choosing.md")
+DOCUMENTS = ("benchmarks/README.md", "docs/concepts/choosing.md", "docs/concepts/models.md")
 NOTEBOOK = "notebooks/05_choosing_a_method.ipynb"
 BLOCK = re.compile(r"(<!-- write_tables\.py: (\w+) -->\n)(?:.*?\n)??(<!-- /write_tables\.py -->)", re.S)
 """`??`: an empty block matches as empty, not as everything up to a later block's end."""

@@ -19,6 +19,7 @@ EXPECTED = [
     "05_choosing_a_method",
     "06_fit_control_torque",
     "07_fit_over_a_long_horizon",
+    "08_fit_a_satellite",
 ]
 
 
