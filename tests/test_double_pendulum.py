@@ -85,16 +85,15 @@ def test_a_planar_motion_is_the_compound_double_pendulum():
     "scene, method, steps, order",
     [
         (ON_T_STAR_G, ON_T_STAR_G.method(pk.stormer_verlet), (50, 100, 200, 400), 2),
-        (ON_T_STAR_G, pk.Symmetrized(ON_T_STAR_G.method(pk.stormer_verlet)), (50, 100, 200, 400), 2),
         (ON_T_STAR_G, ON_T_STAR_G.method(pk.lobatto_iiia_iiib4, pk.Cayley()), (25, 50, 100, 200), 4),
         (ON_T_STAR_G, ON_T_STAR_G.method(pk.lobatto_iiia_iiib6), (40, 60, 80, 120), 6),
-        (ON_G_TIMES_G, ON_G_TIMES_G.method(pk.dormand_prince_8, pk.Cayley()), (30, 40, 50, 60), 8),
     ],
-    ids=["SV", "symmetrized SV", "Lobatto 4 Cayley", "Lobatto 6", "RKMK 8 Cayley G×g"],
+    ids=["SV", "Lobatto 4 Cayley", "Lobatto 6"],
 )
 def test_methods_reach_their_orders(scene, method, steps, order):
-    """Over T = 0.5 (the links swing and spin at a few radians a second),
-    every implicit stage converging."""
+    """The implicit methods, over T = 0.5 (the links swing and spin at a few
+    radians a second), every stage converging. (RKMK 8, explicit, is checked
+    at 1e-10 by the planar motion above.)"""
     slope, errors = scene_order(method, scene, _state(), ARGS, 0.5, steps)
     assert abs(slope - order) < 0.2, (slope, errors)
 
