@@ -108,11 +108,17 @@ Attitude = type[AbstractLieGroup]
 """How a packed body state holds the attitude: `SO3` (a matrix) or `UnitQuaternion`."""
 
 
+def body_rows(attitude: Attitude) -> int:
+    """How many rows a body state packed with `attitude` holds: the attitude
+    (9 for a matrix, 4 for a quaternion), then Π's three."""
+    return 7 if attitude is UnitQuaternion else 12
+
+
 def momentum_kick(attitude: Attitude, torque) -> Shift:
     """The kick Π ↦ Π + h·`torque`(t, z, args) on a body state packed with
-    `attitude` (Π in rows 9–11 after a matrix, 4–6 after a quaternion)."""
-    first = 4 if attitude is UnitQuaternion else 9
-    return Shift((first, first + 1, first + 2), torque)
+    `attitude` (Π in its last three rows, `body_rows`)."""
+    last = body_rows(attitude)
+    return Shift((last - 3, last - 2, last - 1), torque)
 
 
 def packed_in_frame(y: BundleElement, frame: InertiaOrderedFrame) -> Packed:

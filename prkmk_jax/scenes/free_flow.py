@@ -61,9 +61,9 @@ from jaxtyping import Array, Float
 
 from .. import elliptic, exact_flows
 from .._bundles import BundleElement
-from ..groups import SO3, UnitQuaternion, hat
+from ..groups import SO3, hat
 from .base import attitude_like, rotation_matrix
-from .body_frame import Attitude, InertiaOrderedFrame, packed_in_frame, unpacked_from_frame
+from .body_frame import Attitude, InertiaOrderedFrame, body_rows, packed_in_frame, unpacked_from_frame
 
 
 def _least_rotation(v: Array, e: Array) -> Array:
@@ -256,11 +256,11 @@ class FreeBodyFlow(exact_flows.AbstractExactFlow):
         moments, h = coefficients
         # The body's rows come first; rows after them (a position and its
         # momentum, `Satellite`) are not the free body's and stand still.
-        body_rows = 7 if self.attitude is UnitQuaternion else 12
-        y = unpacked_from_frame(z[:body_rows], self.attitude, self.frame)
+        rows = body_rows(self.attitude)
+        y = unpacked_from_frame(z[:rows], self.attitude, self.frame)
         q, pi = free_body_flow(rotation_matrix(y.base), y.fiber, moments, h)
         moved = packed_in_frame(BundleElement(attitude_like(y.base, q), pi), self.frame)
-        return moved if z.shape[0] == body_rows else jnp.concatenate([moved, z[body_rows:]])
+        return moved if z.shape[0] == rows else jnp.concatenate([moved, z[rows:]])
 
     def moved_change(self, start, change, coefficients):
         # Rounded relative to the state, not to the change: the closed form

@@ -112,10 +112,15 @@ def _columns(z: Array) -> Array:
     return jnp.moveaxis(z, 0, -1)
 
 
-POSITION_ROWS = (12, 13, 14)
-"""Where the packed state holds r (after the body's R and Π, `body_frame`)."""
-LINEAR_MOMENTUM_ROWS = (15, 16, 17)
+_BODY = body_frame.body_rows(SO3)
+"""The packed state's first rows: the body's R (row-major) and Π (`body_frame`)."""
+ANGULAR_MOMENTUM = slice(_BODY - 3, _BODY)
+"""Where the packed state holds Π (the body's last rows)."""
+POSITION = slice(_BODY, _BODY + 3)
+"""Where it holds r."""
+LINEAR_MOMENTUM = slice(_BODY + 3, _BODY + 6)
 """Where it holds p."""
+_ROWS = tuple(range(_BODY + 6))
 
 
 def gravity_kick(frame: body_frame.InertiaOrderedFrame, moments: Array) -> exact_flows.Shift:
@@ -129,17 +134,17 @@ def gravity_kick(frame: body_frame.InertiaOrderedFrame, moments: Array) -> exact
     def torque_and_force_rows(t, z, args: SatelliteParameters):
         rotation = _columns(z[:9]).reshape(*z.shape[1:], 3, 3)
         in_frame = eqx.tree_at(lambda a: a.inertia, args, ordered)
-        torque, force = torque_and_force(rotation, _columns(z[12:15]), in_frame)
+        torque, force = torque_and_force(rotation, _columns(z[POSITION]), in_frame)
         return jnp.concatenate([frame.parity * _rows(torque), _rows(force)])
 
-    return exact_flows.Shift((9, 10, 11) + LINEAR_MOMENTUM_ROWS, torque_and_force_rows)
+    return exact_flows.Shift(_ROWS[ANGULAR_MOMENTUM] + _ROWS[LINEAR_MOMENTUM], torque_and_force_rows)
 
 
 def _drift_rate(t, z, args: SatelliteParameters) -> Array:
-    return z[15:18] / args.mass
+    return z[LINEAR_MOMENTUM] / args.mass
 
 
-DRIFT = exact_flows.Shift(POSITION_ROWS, _drift_rate)
+DRIFT = exact_flows.Shift(_ROWS[POSITION], _drift_rate)
 """The flow of |p|²/(2m): r ↦ r + hp/m."""
 
 
@@ -231,8 +236,8 @@ class Satellite(AbstractScene, exact_flows.AbstractSplitScene):
         return parts + body_frame.body_axis_rotations(frame, moments, SO3)
 
     def pack(self, y, args: SatelliteParameters):
-        """The body's (R, Π) as `body_frame.packed_body_state` (rows 0–11),
-        then r and p (`POSITION_ROWS`, `LINEAR_MOMENTUM_ROWS`)."""
+        """The body's (R, Π) as `body_frame.packed_body_state`, then r and p
+        (`POSITION`, `LINEAR_MOMENTUM`)."""
         pose = _pose(y)
         body = BundleElement(SO3(pose.rotation), y.fiber[..., :3])
         packed = body_frame.packed_body_state(body, self._split_moments(args))
@@ -241,8 +246,8 @@ class Satellite(AbstractScene, exact_flows.AbstractSplitScene):
     def unpack(self, z, like, args: SatelliteParameters):
         del like  # every such state has the same structure
         frame = body_frame.InertiaOrderedFrame.of(self._split_moments(args))
-        body = body_frame.unpacked_from_frame(z[:12], SO3, frame)
-        translation, linear = _columns(z[12:15]), _columns(z[15:18])
+        body = body_frame.unpacked_from_frame(z[:_BODY], SO3, frame)
+        translation, linear = _columns(z[POSITION]), _columns(z[LINEAR_MOMENTUM])
         return BundleElement(SO3xR3(rotation_matrix(body.base), translation), jnp.concatenate([body.fiber, linear], axis=-1))
 
     def onto_group(self, z):
