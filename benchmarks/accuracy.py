@@ -302,12 +302,7 @@ def run(regime, scene_name, quick, rounds, short=False, dtype=jnp.float64, paral
         picks = {m: v for (m, t), v in chosen.items() if t == target}
         if not picks:
             continue
-        times = {m: [] for m in picks}
-        for _ in range(rounds):
-            for m, (_, compiled, _) in picks.items():
-                start = time.perf_counter()
-                jax.block_until_ready(compiled(q, p))
-                times[m].append(time.perf_counter() - start)
+        times = C.interleaved_times({m: compiled for m, (_, compiled, _) in picks.items()}, q, p, rounds=rounds)
         for m, (_, _, row) in picks.items():
             row.setdefault("wall_s_at_target", {})[f"{target:.0e}"] = statistics.median(times[m])
     return rows

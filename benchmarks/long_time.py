@@ -21,10 +21,15 @@ the largest drifts of its invariants, the error at the first saved state
 against DOP853 (both scenes' motion is chaotic: over a whole run no
 solution stays near the exact one), the implicit iterations a step, and
 the time a step (median of interleaved rounds); `long_time_<scene>.json`.
+With `--costs` as well: each of those runs to the time of that first save,
+its step count doubled from 25 until its error is below 1e-8 (at most
+51,200 steps), the error and the time of each (`scene_costs`); the table
+gives the cheapest run that reaches each target; `long_time_<scene>_costs.json`.
 
     python benchmarks/long_time.py
     python benchmarks/long_time.py --quick
     python benchmarks/long_time.py --scene satellite
+    python benchmarks/long_time.py --scene satellite --costs
 """
 
 import csv
@@ -231,6 +236,48 @@ def scene_rows(scene_name: str, quick: bool, rounds: int) -> dict:
     return dict(machine=C.machine(), h=h, steps=steps, every=every, rows=rows)
 
 
+COST_TARGETS = (1e-4, 1e-6, 1e-8)
+
+
+def scene_costs(scene_name: str, quick: bool, rounds: int) -> dict:
+    """The `--costs` rows: each run to T = h·(steps between saves) in 25·2ᵏ steps, its error at T and time (median of
+    interleaved rounds), the step count doubled until the error is below the smallest target."""
+    y0, args, every, runs = SCENE_RUNS[scene_name]()
+    t_end, rows = 0.01 * every, []
+    z0, reference = runs[0][2].to_embedding(y0), runs[0][2].reference_solution(y0, [t_end], args)[-1]
+    for model, name, scene, method in runs:
+        compiled, errors = {}, {}
+        for steps in [25 * 2**k for k in range(2 if quick else 12)]:
+            trajectory = functools.partial(pk.integrate, method, scene, dt=t_end / steps, num_steps=steps, save_every=steps)
+
+            def final(z0, args, trajectory=trajectory, scene=scene):
+                return scene.to_embedding(jax.tree.map(lambda a: a[-1], trajectory(scene.from_embedding(z0), 0.0, args=args).ys))
+
+            compiled[steps], _ = C.compile_fn(final, z0, args)
+            errors[steps] = float(np.max(np.abs(np.asarray(compiled[steps](z0, args)) - reference)))
+            if errors[steps] < min(COST_TARGETS):
+                break
+        times = C.interleaved_times(compiled, z0, args, rounds=rounds)
+        points = [dict(steps=n, error=errors[n], ms=1e3 * float(np.median(times[n]))) for n in compiled]
+        rows.append(dict(model=model, method=name, points=points))
+        print(f"{name:28s} {model:16s} " + " ".join(f"{p['steps']}: {p['error']:.1e} {p['ms']:.2f} ms" for p in points), flush=True)
+    return dict(machine=C.machine(), t_end=t_end, rows=rows)
+
+
+def cost_table(data: dict) -> str:
+    """The cheapest run of each method and model that reaches each target (`scene_costs`)."""
+    rows = []
+    for r in data["rows"]:
+        cells = []
+        for target in COST_TARGETS:
+            reached = [p for p in r["points"] if p["error"] <= target]
+            best = min(reached, key=lambda p: p["ms"]) if reached else None
+            cells.append(f"{best['ms']:.3g} ({best['steps']:,})" if best else f"– (> {r['points'][-1]['steps']:,})")
+        rows.append([r["method"], r["model"]] + cells)
+    headers = ["method", "model"] + [f"ms to {t:.0e} (steps)" for t in COST_TARGETS]
+    return C.measured_on(data) + f" The error at T = {data['t_end']:g} (largest entry of the embedding).\n\n" + C.table(headers, rows)
+
+
 def scene_table(results: Path, scene_name: str) -> str:
     """`long_time.py --scene NAME`: each model and method over 10⁵ steps."""
     data = C.results_file(results, f"long_time_{scene_name}.json")
@@ -238,7 +285,9 @@ def scene_table(results: Path, scene_name: str) -> str:
     first = [[r["method"], r["model"], f"{r['step_us']:.2f}", f"{r['iterations']:.1f}", f"{r['compile_s']:.1f}"] for r in data["rows"]]
     rows = [row + [C.number(r[k], ".2g") for k in ["error"] + invariants] for row, r in zip(first, data["rows"])]
     headers = ["method", "model", "µs a step", "iterations a step", "compile s", f"error at T = {data['h'] * data['every']:g}"]
-    return C.measured_on(data) + f" {data['steps']:,} steps of h = {data['h']:g}.\n\n" + C.table(headers + invariants, rows)
+    drifts = C.measured_on(data) + f" {data['steps']:,} steps of h = {data['h']:g}.\n\n" + C.table(headers + invariants, rows)
+    costs = results / f"long_time_{scene_name}_costs.json"
+    return drifts + (f"\n\nThe cost to a target error:\n\n{cost_table(C.results_file(results, costs.name))}" if costs.exists() else "")
 
 
 def tables(results: Path) -> dict[str, str]:
@@ -248,10 +297,14 @@ def tables(results: Path) -> dict[str, str]:
 
 
 def main(argv=None):
-    args, out = C.cli(__doc__, argv, lambda parser: parser.add_argument("--scene", choices=list(SCENE_RUNS), help="that scene's rows"))
+    def arguments(parser):
+        parser.add_argument("--scene", choices=list(SCENE_RUNS), help="that scene's rows")
+        parser.add_argument("--costs", action="store_true", help="with --scene: the step count swept, the cost to each target error")
+
+    args, out = C.cli(__doc__, argv, arguments)
     if args.scene:
-        result = scene_rows(args.scene, args.quick, rounds=1 if args.quick else 3)
-        (out / f"long_time_{args.scene}.json").write_text(json.dumps(result, indent=1))
+        rows, name = (scene_costs, f"{args.scene}_costs") if args.costs else (scene_rows, args.scene)
+        (out / f"long_time_{name}.json").write_text(json.dumps(rows(args.scene, args.quick, 1 if args.quick else 3), indent=1))
         return out
     t_end, repeats = (20.0, 1) if args.quick else (1000.0, 3)
     q0, pi0, inertia = (jnp.asarray(x) for x in (*C.initial_conditions(None), C.INERTIA))

@@ -58,18 +58,8 @@ def _peer(solver):
 
         def run(q0, pi0, inertia):
             z0 = jnp.concatenate([q0.reshape(9), pi0])
-            sol = diffrax.diffeqsolve(
-                diffrax.ODETerm(C.embedding_rhs),
-                solver,
-                0.0,
-                n * H,
-                H,
-                z0,
-                inertia,
-                saveat=diffrax.SaveAt(ts=ts),
-                max_steps=n + 1,
-                throw=False,
-            )
+            options = dict(saveat=diffrax.SaveAt(ts=ts), max_steps=n + 1, throw=False)
+            sol = diffrax.diffeqsolve(diffrax.ODETerm(C.embedding_rhs), solver, 0.0, n * H, H, z0, inertia, **options)
             z = sol.ys
             return (z[:, :9].reshape(-1, 3, 3), z[:, 9:], sol.result == diffrax.RESULTS.successful)
 
@@ -138,21 +128,15 @@ def main(argv=None):
             )
             for hw, s, st in zip(hw_targets, scales, status):
                 rows.append(dict(scene=scene, method=name, h_omega=hw, momentum_scale=s, status=st))
-            print(
-                f"{scene:16s} {name:20s} stable to h|Ω₀| = {thresholds[(scene, name)]['threshold']:6.3f}; "
-                f"first failure at {thresholds[(scene, name)]['first_failure']:6.3f} ({thresholds[(scene, name)]['reason']})",
-                flush=True,
-            )
+            found = thresholds[(scene, name)]
+            first_failure = f"first failure at {found['first_failure']:6.3f} ({found['reason']})"
+            print(f"{scene:16s} {name:20s} stable to h|Ω₀| = {found['threshold']:6.3f}; {first_failure}", flush=True)
     with open(out / "stability.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    with open(out / "stability.json", "w") as f:
-        json.dump(
-            dict(machine=C.machine(), h=H, t_end=t_end, thresholds=[dict(scene=s, method=m, **v) for (s, m), v in thresholds.items()]),
-            f,
-            indent=1,
-        )
+    threshold_rows = [dict(scene=s, method=m, **v) for (s, m), v in thresholds.items()]
+    (out / "stability.json").write_text(json.dumps(dict(machine=C.machine(), h=H, t_end=t_end, thresholds=threshold_rows), indent=1))
     plot(thresholds, hw_targets, out / "stability.png", t_end)
     return out
 
