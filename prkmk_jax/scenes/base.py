@@ -88,8 +88,8 @@ class AbstractScene(AbstractFieldOnBundle):
         field = _compiled_embedding_field(self)
         args_on_cpu = jax.device_put(args, cpu)
 
-        def rhs(t, z):
-            return np.asarray(field(t, z, args_on_cpu))
+        def rhs(t, z):  # t as a float64 array: SciPy passes a float first, NumPy scalars after (one compile, not two)
+            return np.asarray(field(np.asarray(t, np.float64), z, args_on_cpu))
 
         # SciPy's arrays go to the CPU as the default device: a `device_put`
         # of each state would cost several times the field's evaluation.
