@@ -83,7 +83,8 @@ def test_no_retrace_for_new_data():
 def test_a_plain_call_compiles_once_per_shape():
     """`integrate` called as it is, twice with new values of the same shapes
     (state, parameters, t0, dt), traces the run once: the field is traced
-    during the first call only. A new number of steps compiles again."""
+    during the first call only, whether the times are Python floats, ints or
+    NumPy scalars. A new number of steps compiles again."""
     method, traces = _method(), []
 
     def field(t, y, inertia):
@@ -94,6 +95,7 @@ def test_a_plain_call_compiles_once_per_shape():
     first = len(traces)
     assert first > 0
     pk.integrate(method, field, initial_state(COTANGENT, 1), 0.5, 0.02, 20, 2 * jnp.asarray(INERTIA))
+    pk.integrate(method, field, initial_state(COTANGENT, 1), 1, np.float64(0.02), 20, jnp.asarray(INERTIA))
     assert len(traces) == first
     pk.integrate(method, field, initial_state(COTANGENT, 1), 0.0, 0.01, 40, jnp.asarray(INERTIA))
     assert len(traces) > first

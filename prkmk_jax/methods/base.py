@@ -449,10 +449,13 @@ class AbstractOfOneScene(AbstractMethod):
 
 
 def as_traced(x):
-    """A Python or NumPy number as an array, so that a compiled function
-    takes it as an argument (one compilation for every value, and no
-    constant that XLA folds with another rounding than the caller's)."""
-    return jnp.asarray(x) if isinstance(x, (int, float, np.number)) and not isinstance(x, bool) else x
+    """A Python or NumPy number as a weakly typed float array, so that a
+    compiled function takes it as an argument: one compilation for every
+    value and every kind of number (a Python float, an int and a NumPy
+    scalar trace alike), no constant that XLA folds with another rounding
+    than the caller's, and no promotion of a float32 state (a weak type
+    takes the state's)."""
+    return jnp.asarray(float(x)) if isinstance(x, (int, float, np.number)) and not isinstance(x, bool) else x
 
 
 def _step(method: AbstractMethod, vector_field, t, y, dt, args, carried) -> Step:
