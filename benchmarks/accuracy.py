@@ -4,7 +4,9 @@ diffrax and a hand-written splitting kernel — at the error targets 1e-6,
 
 Scenes: the free rigid body (paper inertia and momentum, random attitudes)
 and the heavy top (`HeavyTop`, inertia (1, 0.8, 0.4), lever (0.1, 0.2, 0.9)),
-T = 10. Methods:
+T = 10; with `--scenes "forced body"` the forced body (`ForcedRigidBody`,
+`FORCED_ARGS`), whose rows compare its splittings with the exact free part
+against the axis splittings (the hand-written kernel has no torque). Methods:
 
 - the library's `Splitting` of the scene (Strang, and composed to order 4,
   6 and 8), through `prkmk_jax.integrate`, the batch in the state;
@@ -49,13 +51,15 @@ import numpy as np
 import _common as C
 import prkmk_jax as pk
 from prkmk_jax.groups import sincos
-from prkmk_jax.scenes import FreeRigidBody, HeavyTop, TopParameters
+from prkmk_jax.scenes import ForcedParameters, ForcedRigidBody, FreeRigidBody, HarmonicTorque, HeavyTop, TopParameters
 
 T_END = 10.0
 TARGETS = (1e-6, 1e-8, 1e-10)
 TARGETS_FLOAT32 = (1e-4, 1e-5, 1e-6)
 TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
+FORCED_ARGS = ForcedParameters(jnp.asarray(C.INERTIA), HarmonicTorque(jnp.array([0.3, 0.2, 0.1]), jnp.array([1.0, 2.0, 3.0]), jnp.zeros(3)))
 SCENES = {"free body": (FreeRigidBody(), jnp.asarray(C.INERTIA)), "heavy top": (HeavyTop(), TOP_ARGS)}
+SCENES["forced body"] = (ForcedRigidBody(), FORCED_ARGS)  # its rows: the exact free part's (`--scenes`)
 
 
 def _floor_kernel(scene_name, args, fractions):
@@ -135,11 +139,12 @@ def _runners(scene_name, n, floor_fractions=pk.kahan_li_8.fractions, dtype=jnp.f
     if scene_name == "heavy top":  # on G×g the fiber's part of each stage is a sum (Cayley's dcay⁻¹ is I there)
         on_g_x_g = HeavyTop(pk.DirectProduct(pk.SO3))
         out["PRKMK DP8 Cayley G×g"] = library(on_g_x_g.method(pk.dormand_prince_8, pk.Cayley()), on_g_x_g)
-        for name, c in (("order 6", pk.kahan_li_6), ("order 8", pk.kahan_li_8)):  # the kinetic energy whole, in closed form
-            out[f"splitting {name} (exact free part)"] = library(scene.splitting(c, free_part="exact"))
-    else:
+    if scene_name == "free body":
         out["exact flow"] = library(scene.exact_flow())
-    out["floor order 8 (hand-written)"] = floor
+    for name, c in (("order 6", pk.kahan_li_6), ("order 8", pk.kahan_li_8)) if scene_name != "free body" else ():
+        out[f"splitting {name} (exact free part)"] = library(scene.splitting(c, free_part="exact"))  # the kinetic energy whole
+    if scene_name != "forced body":  # the hand-written kernel has the free body's and the heavy top's parts
+        out["floor order 8 (hand-written)"] = floor
     out["Dopri8 fixed"] = fixed_step(diffrax.Dopri8())
     out["Tsit5 fixed"] = fixed_step(diffrax.Tsit5())
     return out
@@ -535,6 +540,7 @@ def _arguments(parser):
     parser.add_argument("--name", default="accuracy", help="stem of the results files")
     parser.add_argument("--without", default="", help="comma-separated methods to leave out (e.g. 'Tsit5 fixed')")
     parser.add_argument("--methods", default="", help="comma-separated methods to run (default: all of the sweep)")
+    parser.add_argument("--scenes", default="free body,heavy top", help="comma-separated; a file's other scenes' rows are kept")
     parser.add_argument("--parallel-compile", action="store_true", help="compile each sweep on threads (compile times not recorded)")
 
 
@@ -543,14 +549,15 @@ def main(argv=None):
     if args.quick:  # one regime: the script's code is the same for each
         args.regimes = "4"
     dtype = jnp.float32 if args.float32 else jnp.float64
-    rows = []
+    scenes, existing = args.scenes.split(","), out / f"{args.name}.json"
+    rows = [r for r in C.results_file(out, existing.name)["rows"] if r["scene"] not in scenes] if existing.exists() else []
     targets = TARGETS if dtype == jnp.float64 else TARGETS_FLOAT32
 
     def write():
         with open(out / f"{args.name}.json", "w") as f:
             json.dump(dict(machine=C.machine(), t_end=T_END, targets=targets, rows=rows), f, indent=1)
 
-    for scene_name in list(SCENES)[:1] if args.quick else SCENES:
+    for scene_name in scenes[:1] if args.quick else scenes:
         for regime in args.regimes.split(","):
             only = [m for m in args.methods.split(",") if m]
             options = dict(short=args.short, dtype=dtype, parallel_compile=args.parallel_compile, only=only, growth=args.growth)
