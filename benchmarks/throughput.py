@@ -14,7 +14,7 @@
    stages: symplectic Euler (1), Störmer–Verlet (2), Lobatto IIIA–IIIB (3).
 3. The explicit stages unrolled or in a loop (`PRKMK(explicit_stages=...)`):
    classical RK 4 and Dormand–Prince 8 (RKMK; exp, and Cayley coordinates
-   for DP 8) on T*SO(3) and on G×g, one
+   for DP 8) on T*SO(3) and on G×g (at 1024 also the heavy top, whose field moves the fiber), one
    trajectory and batches of 8, 16 and 1024 in the state, the two layouts
    in alternation; time a step, loop over unrolled, and compile times: the
    rows that check the default ("auto": the loop from `STAGE_LOOP_BATCH`
@@ -35,9 +35,10 @@ import jax.numpy as jnp
 
 import _common as C
 import prkmk_jax as pk
-from prkmk_jax.scenes import FreeRigidBody
+from prkmk_jax.scenes import FreeRigidBody, HeavyTop, TopParameters
 
 H = 0.01
+TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))  # accuracy.py's heavy top
 QUATERNIONS = FreeRigidBody(pk.Cotangent(pk.UnitQuaternion))  # the attitude as a unit quaternion
 QUATERNION_RKMK8 = QUATERNIONS.method(pk.dormand_prince_8, pk.Cayley())
 
@@ -140,18 +141,20 @@ def stage_layouts(quick, rounds):
     tableaus["DP 8, Cayley"] = (pk.dormand_prince_8, pk.Cayley())
     if quick:  # one of each layout: the script runs
         bundles, tableaus = {"T*SO(3)": bundles["T*SO(3)"]}, {"DP 8": tableaus["DP 8"]}
-    for batch in [8] if quick else [1, 8, 16, 1024]:
+    batches = [8] if quick else [1, 8, 16, 1024]
+    for batch in batches:
         steps = 10 if quick else max(50, 2000 // batch)
         qs, pis = C.initial_conditions(batch, seed=3)
         args = (jnp.asarray(qs), jnp.asarray(pis), jnp.asarray(C.INERTIA))
-        for bundle_name, bundle in bundles.items():
-            scene = FreeRigidBody(bundle)
+        scenes = [(name, FreeRigidBody(bundle), args) for name, bundle in bundles.items()]  # the largest batch: the heavy top too
+        scenes += [(f"{name}, heavy top", HeavyTop(b), args[:2] + (TOP_ARGS,)) for name, b in bundles.items() if batch == batches[-1]]
+        for bundle_name, scene, scene_args in scenes:
             for tableau_name, (tableau, coordinates) in tableaus.items():
                 finals = {
                     k: C.integrate_final(scene.method(tableau, coordinates, explicit_stages=k), steps, H, scene=scene)
                     for k in ("loop", "unrolled")
                 }
-                step_us, ratio, compile_s = _side_by_side(finals, args, steps, rounds)
+                step_us, ratio, compile_s = _side_by_side(finals, scene_args, steps, rounds)
                 row = dict(bundle=bundle_name, tableau=tableau_name, batch=batch, step_us=step_us)
                 rows.append(row | dict(loop_over_unrolled=ratio, compile_s=compile_s))
                 print(f"{bundle_name:8s} {tableau_name:5s} batch {batch:5d}  µs a step {step_us}  loop/unrolled {ratio:5.2f}  {compile_s}")
