@@ -87,6 +87,25 @@ def two_sum(a, b):
     return total, (a - (total - b_virtual)) + (b - b_virtual)
 
 
+def two_product(a, b):
+    """a·b as (high, low), high + low within about eps² of a·b: the
+    products of the factors' halves (`_split`) are exact, and the two
+    middle ones are added without error (where `_exact_product` rounds
+    their sum, about eps^1.5 of a·b)."""
+    a_high, a_low = _split(a)
+    b_high, b_low = _split(b)
+    middle, middle_error = two_sum(a_high * b_low, a_low * b_high)
+    high, error = two_sum(a_high * b_high, middle)
+    return high, error + (middle_error + a_low * b_low)
+
+
+def pair_times(pair, factor):
+    """The product of two unevaluated sums (high, low)·(high′, low′) as
+    (high, low), within about eps² of it (low·low′ dropped)."""
+    high, low = two_product(pair[0], factor[0])
+    return high, low + (pair[0] * factor[1] + pair[1] * factor[0])
+
+
 def _split(x):
     """x = high + low exactly, high with the leading half of x's significand
     (the rest masked off) and low with the rest, so that the product of any

@@ -13,7 +13,7 @@ import pytest
 
 import prkmk_jax as pk
 from helpers import INERTIA, random_rotation, rigid_body_field
-from prkmk_jax._exact_sums import rounded_once_combination
+from prkmk_jax._exact_sums import pair_times, rounded_once_combination, two_product
 
 WEIGHTS = {
     "symplectic Euler": (1.0,),
@@ -155,3 +155,24 @@ def test_combination_differentiates_as_the_sum():
     # ∂²/∂dt∂x₀ of Σ_k out_k is c₀ in every entry.
     second = jax.grad(lambda dt: jnp.sum(jax.grad(lambda s: jnp.sum(combined(dt, s)))(slopes)[0]))(jnp.asarray(0.1))
     np.testing.assert_allclose(second, 5 * coefficients[0], rtol=1e-14)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_two_product_and_pair_times_to_eps_squared(dtype):
+    """(high, low) of a·b, and of (a·b)·c as a pair times a number, within
+    a few eps² of the exact products (fractions), over magnitudes 1e-3…1e3."""
+    rng = np.random.default_rng(7)
+    a, b, c = (np.asarray(rng.choice([-1, 1], 500) * 10.0 ** rng.uniform(-3, 3, 500), dtype) for _ in range(3))
+    eps = float(np.finfo(dtype).eps)
+
+    @jax.jit
+    def products(a, b, c):
+        pair = two_product(a, b)
+        return pair, pair_times(pair, (c, jnp.zeros_like(c)))
+
+    (ab_high, ab_low), (abc_high, abc_low) = products(a, b, c)
+    for k in range(a.size):
+        ab = Fraction(float(a[k])) * Fraction(float(b[k]))
+        assert abs(Fraction(float(ab_high[k])) + Fraction(float(ab_low[k])) - ab) <= 2 * eps**2 * abs(ab)
+        abc = ab * Fraction(float(c[k]))
+        assert abs(Fraction(float(abc_high[k])) + Fraction(float(abc_low[k])) - abc) <= 4 * eps**2 * abs(abc)

@@ -43,11 +43,13 @@ bound near a quarter turn as 1 − k² → 0 and magnified φ's rounding; sn, cn
 and dn come with their own relative accuracy (`elliptic._reduced_jacobi`).
 So a body near its middle axis (the Dzhanibekov spin: φ near a quarter turn,
 1 − k² of the order of the squared offset) keeps its attitude to round-off.
-Closer to the separatrix |Π|² = 2H·I_mid than about 1e-10 (relative), the
-flow itself is ill-conditioned (over T = 100 an ulp of Π moves the exact
-attitude by up to 1e-3), and 1 − k², a difference of the state's terms,
-rounds in proportion: the errors there are those of the problem, not of
-this evaluation (`tests/test_exact_flow.py`, design notes).
+The distance from the separatrix, |Π|² − 2H·I_mid, which sets 1 − k² and
+the axis Π circles, is a difference of the state's terms and is computed
+in twice the precision (`_separatrix_distance`), so that it is rounded
+relative to itself. Closer to the separatrix than about 1e-10 (relative)
+the flow itself is ill-conditioned (over T = 100 an ulp of Π moves the
+exact attitude by up to 1e-3), and within about 1e-12 of it the attitude
+can lose more than that conditioning explains (design notes).
 """
 
 import functools
@@ -61,6 +63,7 @@ from jaxtyping import Array, Float
 
 from .. import elliptic, exact_flows
 from .._bundles import BundleElement
+from .._exact_sums import pair_times, two_product, two_sum
 from ..groups import SO3, hat
 from .base import attitude_like, rotation_matrix
 from .body_frame import Attitude, InertiaOrderedFrame, body_rows, packed_in_frame, unpacked_from_frame
@@ -84,6 +87,25 @@ def _take(v: Array, index: Array) -> Array:
     """v[..., index] for an index per row, as a sum of selected entries
     (elementwise arithmetic XLA fuses, where a gather is a kernel of its own)."""
     return jnp.sum(jnp.where(jnp.arange(3) == index[..., None], v, 0), axis=-1)
+
+
+def _separatrix_distance(p_lo: Array, p_hi: Array, i_lo: Array, i_mid: Array, i_hi: Array) -> Array:
+    """|Π|² − 2H·I_mid = Π_hi²(I_hi − I_mid)/I_hi − Π_lo²(I_mid − I_lo)/I_lo
+    (Π_mid's terms cancel), to its own relative accuracy.
+
+    Near the separatrix the two terms cancel, and rounded as they stand
+    they would leave this difference, hence 1 − k² and the side of the
+    separatrix, with an error of eps relative to the terms: an error of
+    the evaluation, not of the state, which the period's logarithm
+    ln(1/(1 − k²)) turns into an error in the phase. Computed as
+    Π_hi²(I_hi − I_mid)I_lo − Π_lo²(I_mid − I_lo)I_hi in twice the working
+    precision (exact squares and differences, products to ~eps²) and
+    divided by I_hi·I_lo once, it is rounded relative to itself."""
+    zero = jnp.zeros_like(p_lo)
+    above = pair_times(pair_times(two_product(p_hi, p_hi), two_sum(i_hi, -i_mid)), (i_lo, zero))
+    below = pair_times(pair_times(two_product(p_lo, p_lo), two_sum(i_mid, -i_lo)), (i_hi, zero))
+    high, low = two_sum(above[0], -below[0])
+    return (high + (low + (above[1] - below[1]))) / (i_hi * i_lo)
 
 
 def free_body_flow(
@@ -159,15 +181,13 @@ def _moving_flow(q: Array, pi: Array, inertia: Array, h: Array) -> tuple[Array, 
 
     # The axes: lo, mid, hi by inertia (three distinct indices whatever the
     # ties: the first smallest, the last largest); d = hi where
-    # |Π|² > 2H·I_mid, i.e. Π_hi²(I_hi − I_mid)/I_hi > Π_lo²(I_mid − I_lo)/I_lo
-    # (the other terms cancel), ties going to the axis further from the middle.
+    # |Π|² > 2H·I_mid, ties going to the axis further from the middle.
     lo = jnp.argmin(inertia, axis=-1)
     hi = 2 - jnp.argmax(inertia[..., ::-1], axis=-1)
     mid = 3 - lo - hi
     i_lo, i_mid, i_hi = _take(inertia, lo), _take(inertia, mid), _take(inertia, hi)
-    above = _take(squares, hi) * (i_hi - i_mid) / i_hi
-    below = _take(squares, lo) * (i_mid - i_lo) / i_lo
-    about_hi = (above > below) | ((above == below) & (i_hi - i_mid >= i_mid - i_lo))
+    separatrix_distance = _separatrix_distance(_take(pi, lo), _take(pi, hi), i_lo, i_mid, i_hi)
+    about_hi = (separatrix_distance > 0) | ((separatrix_distance == 0) & (i_hi - i_mid >= i_mid - i_lo))
     c, s, d = jnp.where(about_hi, lo, hi), mid, jnp.where(about_hi, hi, lo)
     i_c, i_s, i_d = _take(inertia, c), _take(inertia, s), _take(inertia, d)
     p_c, p_s, p_d = _take(pi, c), _take(pi, s), _take(pi, d)
@@ -175,7 +195,7 @@ def _moving_flow(q: Array, pi: Array, inertia: Array, h: Array) -> tuple[Array, 
     # The differences of 2H·I and |Π|², as sums that do not cancel.
     d_c = p_c**2 * (i_d - i_c) / i_c + p_s**2 * (i_d - i_s) / i_s  # 2H·I_d − |Π|²
     d_d = p_s**2 * (i_s - i_c) / i_s + p_d**2 * (i_d - i_c) / i_d  # |Π|² − 2H·I_c
-    d_s = p_c**2 * (i_c - i_s) / i_c + p_d**2 * (i_d - i_s) / i_d  # |Π|² − 2H·I_s
+    d_s = separatrix_distance  # |Π|² − 2H·I_s, the same sum whichever of lo and hi is d
     g = p_c**2 * (1 / i_c - 1 / i_d) + p_s**2 * (1 / i_s - 1 / i_d)  # 2H − |Π|²/I_d
     # `free_body_flow` sends no state whose Π stands still here, but squares
     # of tiny components can underflow to a difference of 0, where every
