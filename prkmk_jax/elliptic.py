@@ -316,39 +316,46 @@ def _incomplete_pair(n: Array, j: Array, s: Array, c: Array, m1: Array) -> tuple
 
 
 @jax.custom_jvp
-def _third_kind_of_u(n: Array, u: Array, m: Array, m1: Array, reduced: tuple[Array, Array, Array, Array]) -> Array:
-    """∫₀^u du′/(1 − n sn²(u′ | m)) = Π(n; am u | m), 0 ≤ m < 1, n < 1, from
-    `reduced` = `_reduced_jacobi(u, m, m1)` (which the caller has).
+def _third_kind_increment(n: Array, u: Array, m: Array, m1: Array, reduced: tuple[Array, Array, Array, Array]) -> Array:
+    """∫ du′/(1 − n sn²(u′ | m)) from u₀ to u₁ = Π(n; am u₁) − Π(n; am u₀),
+    0 ≤ m < 1, n < 1, for the two ends u = (u₀, u₁) stacked on the first
+    axis, from `reduced` = `_reduced_jacobi(u, m, m1)` (which the caller has).
 
-    The integrand is bounded, so this is a well-conditioned function of u;
-    written through the amplitude, Π(n; φ)'s derivative 1/((1 − n sin²φ)Δ)
-    would magnify φ's rounding near a quarter turn with 1 − m small by 1/Δ.
-    Here sn, cn, dn of u come with their own relative accuracy, and the
-    derivative in u is the integrand. The first kind's part is u itself
-    (F(am u) = u): in Carlson's form, s·R_F(c², Δ², 1), it would grow like
-    ln(1/(c + Δ)) near a quarter turn and turn the rounding of c and Δ
-    (their parameter 1 − m, when that is a small difference) into an
-    absolute error; what is left, (n/3) s³ R_J, carries the same logarithm
-    with the factor n/(1 − n s²) only. `reduced`'s tangents are not read:
-    they are u's and the parameters', which the derivative accounts for."""
+    The integrand is bounded, so this is a well-conditioned function of the
+    ends; written through the amplitude, Π(n; φ)'s derivative
+    1/((1 − n sin²φ)Δ) would magnify φ's rounding near a quarter turn with
+    1 − m small by 1/Δ. Here sn, cn, dn of u come with their own relative
+    accuracy, and the derivative in u is the integrand. Π(n; am u) is u
+    plus (n/3)(s³R_J(c², Δ², 1, 1 − ns²) + 2jR_J(0, m₁, 1, 1 − n)) for
+    u = 2jK + r (s, c, Δ of r; the first kind's part is u itself, which in
+    Carlson's form would grow like ln(1/(c + Δ)) near a quarter turn and
+    turn the rounding of c and Δ into an absolute error). The increment is
+    summed from the differences of like parts — u₁ − u₀, the two R_J terms,
+    j₁ − j₀ — so that a short step far along (u₁ − u₀ small against u₀) is
+    not left with the rounding of the two whole values: over such steps the
+    attitude's turn divides the increment by the step's small rate in u.
+    `reduced`'s tangents are not read: they are u's and the parameters',
+    which the derivative accounts for."""
     j, s, c, dn = reduced
     s2 = s * s
     partial = s * s2 * carlson_rj(c * c, dn * dn, jnp.ones_like(s), 1 - n * s2)
     ones = _parameters_ones(n, m1, s.dtype)
     complete = carlson_rj(0 * ones, m1 * ones, ones, 1 - n)
+    turns = j[1] - j[0]
     # Π(n; jπ + φ_r) = 2jΠ(n) + Π(n; φ_r), with Π = F + (n/3)·s³R_J and 2jK + F(φ_r) = u.
-    return u + n / 3 * jnp.where(j == 0, partial, partial + 2 * j * complete)
+    return (u[1] - u[0]) + n / 3 * jnp.where(turns == 0, partial[1] - partial[0], (partial[1] - partial[0]) + 2 * turns * complete)
 
 
-@_third_kind_of_u.defjvp
-def _third_kind_of_u_jvp(primals, tangents):
-    # In the parameters at fixed u: Π(n; am u)'s partials at fixed φ, plus
-    # ∂Π/∂φ · ∂am/∂m1 at fixed u, where ∂am/∂m1 = −Δ ∂F/∂m1 (from F(am u) = u)
-    # and ∂Π/∂φ = 1/((1 − n sin²φ)Δ): no division by Δ is left.
+@_third_kind_increment.defjvp
+def _third_kind_increment_jvp(primals, tangents):
+    # At each end, in the parameters at fixed u: Π(n; am u)'s partials at
+    # fixed φ, plus ∂Π/∂φ · ∂am/∂m1 at fixed u, where ∂am/∂m1 = −Δ ∂F/∂m1
+    # (from F(am u) = u) and ∂Π/∂φ = 1/((1 − n sin²φ)Δ): no division by Δ.
     n, u, m, m1, reduced = primals
     d_n, d_u, _, d_m1, _ = tangents
     j, s, c, _ = (jax.lax.stop_gradient(x) for x in reduced)
     integrand = 1 / (1 - n * s * s)
 
     _, (d_first, d_third) = jax.jvp(lambda n, m1: _incomplete_pair(n, j, s, c, m1), (n, m1), (d_n, d_m1))
-    return _third_kind_of_u(n, u, m, m1, reduced), d_third - d_first * integrand + d_u * integrand
+    at_ends = d_third - d_first * integrand + d_u * integrand
+    return _third_kind_increment(n, u, m, m1, reduced), at_ends[1] - at_ends[0]

@@ -49,6 +49,10 @@ CASES = {  # name: (inertia, momentum)
     # are evaluated where an amplitude's rounding would be magnified by 1/k′.
     "near the middle axis (1e-6)": (np.array([0.5, 0.75, 1.0]), np.array([1e-6, 0.9, 0.7e-6])),
     "near the middle axis (1e-9)": (np.array([1.0, 0.75, 0.5]), np.array([-0.7e-9, 0.9, 1e-9])),
+    # Two moments 5e-11 apart and Π near their plane: Π precesses slowly, so
+    # a step's increments of the attitude's integrals are small against
+    # their values at its ends, and g/λ multiplies their rounding by 200.
+    "slow precession": (np.array([2.0, 2.1, 2.0 * (1 + 5e-11)]), np.array([-2.25, -0.02, 0.08])),
 }
 
 
@@ -107,6 +111,26 @@ def test_solves_the_equations_and_composes():
         q_sum, pi_sum = _flows(q, pi, inertia, a + b)
         np.testing.assert_allclose(q_ab, q_sum, atol=2e-14)
         np.testing.assert_allclose(pi_ab, pi_sum, atol=2e-14)
+
+
+def test_many_short_steps_are_one_long_step():
+    """100 steps of 1 end where one step of 100 does, to the rounding of a
+    hundred states (the flow is exact, so only rounding can part them);
+    not near the separatrix or the middle axis, where the motion itself
+    multiplies an ulp by 1e5 over T = 100."""
+    q, pi, inertia = _batch()
+
+    @jax.jit
+    def hundred_steps(q, pi):
+        return jax.lax.scan(lambda state, _: (_flows(*state, inertia, 1.0), None), (q, pi), None, length=100)[0]
+
+    q_many, pi_many = hundred_steps(q, pi)
+    q_one, pi_one = _flows(q, pi, inertia, 100.0)
+    scale = np.linalg.norm(pi, axis=-1)
+    for k, name in enumerate(CASES):
+        if not name.startswith("near the"):
+            assert np.max(np.abs(q_many[k] - q_one[k])) < 5e-13, name
+            assert np.max(np.abs(pi_many[k] - pi_one[k])) < 5e-13 * scale[k], name
 
 
 def test_a_method_in_every_driver():

@@ -37,12 +37,16 @@ symmetric bodies (two equal moments: k² = 0, sn = sin) and the sphere are
 the same formulas. Differentiable in (Q, Π, I, h).
 
 **Accuracy.** Both integrals are evaluated as functions of u, not of the
-amplitude φ (`elliptic._third_kind_of_u`): their integrands in u are
+amplitude φ (`elliptic._third_kind_increment`): their integrands in u are
 bounded, where Π(n; φ)'s sensitivity to φ, 1/((1 − n sin²φ)Δ), grows without
 bound near a quarter turn as 1 − k² → 0 and magnified φ's rounding; sn, cn
 and dn come with their own relative accuracy (`elliptic._reduced_jacobi`).
 So a body near its middle axis (the Dzhanibekov spin: φ near a quarter turn,
 1 − k² of the order of the squared offset) keeps its attitude to round-off.
+A step's increments of the two integrals are summed from the differences
+of like parts (`elliptic._third_kind_increment`), not taken as the
+difference of their values at the ends: where Π precesses slowly (λ small)
+ψ divides them by λ, and the ends' rounding would be multiplied.
 The distance from the separatrix, |Π|² − 2H·I_mid, which sets 1 − k² and
 the axis Π circles, is a difference of the state's terms and is computed
 in twice the precision (`_separatrix_distance`), so that it is rounded
@@ -220,8 +224,12 @@ def _moving_flow(q: Array, pi: Array, inertia: Array, h: Array) -> tuple[Array, 
     phi0 = jnp.arctan2(p_s / a_s, p_c / a_c)
     u0 = elliptic._ellipf(phi0, k2, k2c)
     # sn, cn, dn at both ends, u = 2jK + r, from r's: each to its own
-    # relative accuracy (one evaluation for the two ends).
-    ends = jnp.stack(jnp.broadcast_arrays(u0, u0 + sigma * lam * h))
+    # relative accuracy (one evaluation for the two ends). The end u₁ is
+    # u₀ + σλh rounded; what the rounding drops (`end_error`, exact) is put
+    # back into the attitude's increments below, to first order: over a step
+    # short against u₀ it is much of the step's own increment.
+    end, end_error = two_sum(u0, sigma * lam * h)
+    ends = jnp.stack(jnp.broadcast_arrays(u0, end))
     reduced = elliptic._reduced_jacobi(ends, k2, k2c)
     turns, sine, cosine, delta = reduced
     parity = 1 - 2 * jnp.abs(turns[1] % 2)  # (−1)^j
@@ -233,11 +241,15 @@ def _moving_flow(q: Array, pi: Array, inertia: Array, h: Array) -> tuple[Array, 
     # The turn ψ about e.
     n = 1 - a_s2 / a_c2
 
-    # Θ(am u) = jπ + atan2(A_s sn r, A_c cn r) and the third kind at both
-    # ends, as functions of u.
-    theta = jnp.arctan2(a_s * sine, a_c * cosine) + turns * jnp.pi
-    third = elliptic._third_kind_of_u(n, ends, k2, k2c, reduced)
-    bracket = mu / a_c2 * (third[1] - third[0]) - a_d / (a_c * a_s) * (theta[1] - theta[0])
+    # The increments of Θ(am u) = jπ + atan2(A_s sn r, A_c cn r) and of the
+    # third kind over the step, as functions of u, each summed from the
+    # differences of like parts (the ends' whole values are rounded at their
+    # own size, which a short step far along would keep and g/λ magnify).
+    within = jnp.arctan2(a_s * sine, a_c * cosine)
+    theta_rate = a_c * a_s * delta[1] / (a_c2 * cosine[1] ** 2 + a_s2 * sine[1] ** 2)  # dΘ/du at u₁
+    theta = (within[1] - within[0]) + (turns[1] - turns[0]) * jnp.pi + theta_rate * end_error
+    third = elliptic._third_kind_increment(n, ends, k2, k2c, reduced) + end_error / (1 - n * sine[1] ** 2)
+    bracket = mu / a_c2 * third - a_d / (a_c * a_s) * theta
     psi = mu * h / i_d + jnp.where(moving, g / (sigma * lam) * bracket, 0.0)
 
     e = sign_d[..., None] * jnp.where(axes == d[..., None], 1.0, 0.0).astype(dtype)
