@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import prkmk_jax as pk
+from prkmk_jax.methods.base import as_traced
 from prkmk_jax.scenes import ForcedParameters, FreeRigidBody, HarmonicTorque, SatelliteParameters, SymmetricRigidBody, TopParameters
 from prkmk_jax.scenes.base import attitude_of
 from prkmk_jax.scenes.rigid_body import random_rotation, symmetric_initial_state
@@ -108,11 +109,12 @@ def scene_reference(scene, y0, t_end, args, t_eval=None) -> np.ndarray:
 def final_state_by_steps(method: pk.AbstractMethod, field):
     """A jitted (y0, dt, n, args, t0=0) -> (y after n steps of `method.step`
     from (t0, y0), whether every step's implicit stages converged). dt, n and
-    t0 are traced: one compiled program serves every step size of a
-    convergence test."""
+    t0 are traced, and numbers are taken as the library's drivers take them
+    (`as_traced`): one compiled program serves every step size and start
+    time of a convergence test, whatever kind of number each is."""
 
     @jax.jit
-    def run(y0, dt, n, args, t0=0.0):
+    def run(y0, dt, n, args, t0):
         def one_step(i, carry):
             y, converged = carry
             step = method.step(field, t0 + i * dt, y, dt, args)
@@ -121,7 +123,7 @@ def final_state_by_steps(method: pk.AbstractMethod, field):
 
         return jax.lax.fori_loop(0, n, one_step, (y0, jnp.array(True)))
 
-    return run
+    return lambda y0, dt, n, args, t0=0.0: run(y0, as_traced(dt), n, args, as_traced(t0))
 
 
 @functools.cache

@@ -321,7 +321,7 @@ def test_declared_order(name):
     for n in steps:
         y, t, worst = problem.y0, problem.t0, 0.0
         for row, end in zip(expected, times):
-            y, converged = run(y, jnp.asarray(interval / n), n, problem.args, jnp.asarray(t, float))
+            y, converged = run(y, interval / n, n, problem.args, t)
             assert converged
             worst, t = max(worst, float(np.max(np.abs(problem.embed(y) - row)))), end
         errors.append(worst)
