@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import prkmk_jax as pk
-from prkmk_jax.scenes import FreeRigidBody
+from prkmk_jax.scenes import FreeRigidBody, TopParameters
 from prkmk_jax.scenes import rigid_body as rb
 from prkmk_jax.scenes.base import attitude_of, rotation_matrix
 
@@ -53,6 +53,11 @@ SCENE = FreeRigidBody()
 vector field (`SCENE.method(tableau)` builds them) and, through
 `SCENE.embedding_field`, the peers' field on the flat 12-vector."""
 embedding_rhs = SCENE.embedding_field
+
+
+def top_parameters() -> TopParameters:
+    """The heavy top's moments and lever ℓ = m g χ, built when called (JAX's devices are set up after this import)."""
+    return TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
 
 
 def from_vector(z):
@@ -123,14 +128,8 @@ def _final(term, solver, to_state, split, adaptive, t_eval):
 
 def prkmk_final(solver, adaptive=False, t_eval=None):
     """`_final` for a PRKMKSolver on T*SO(3)."""
-    return _final(
-        pk.PRKMKTerm(SCENE),
-        solver,
-        lambda q0, pi0: pk.BundleElement(pk.SO3(q0), pi0),
-        lambda ys: (ys.base.matrix, ys.fiber),
-        adaptive,
-        t_eval,
-    )
+    to_state, split = (lambda q0, pi0: pk.BundleElement(pk.SO3(q0), pi0)), (lambda ys: (ys.base.matrix, ys.fiber))
+    return _final(pk.PRKMKTerm(SCENE), solver, to_state, split, adaptive, t_eval)
 
 
 def diffrax_final(solver, adaptive, t_eval=None):

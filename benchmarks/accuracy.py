@@ -51,12 +51,12 @@ import numpy as np
 import _common as C
 import prkmk_jax as pk
 from prkmk_jax.groups import sincos
-from prkmk_jax.scenes import ForcedParameters, ForcedRigidBody, FreeRigidBody, HarmonicTorque, HeavyTop, TopParameters
+from prkmk_jax.scenes import ForcedParameters, ForcedRigidBody, FreeRigidBody, HarmonicTorque, HeavyTop
 
 T_END = 10.0
 TARGETS = (1e-6, 1e-8, 1e-10)
 TARGETS_FLOAT32 = (1e-4, 1e-5, 1e-6)
-TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
+TOP_ARGS = C.top_parameters()
 FORCED_ARGS = ForcedParameters(jnp.asarray(C.INERTIA), HarmonicTorque(jnp.array([0.3, 0.2, 0.1]), jnp.array([1.0, 2.0, 3.0]), jnp.zeros(3)))
 SCENES = {"free body": (FreeRigidBody(), jnp.asarray(C.INERTIA)), "heavy top": (HeavyTop(), TOP_ARGS)}
 SCENES["forced body"] = (ForcedRigidBody(), FORCED_ARGS)  # its rows: the exact free part's (`--scenes`)

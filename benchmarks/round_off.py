@@ -34,14 +34,14 @@ import numpy as np
 
 import _common as C
 import prkmk_jax as pk
-from prkmk_jax.scenes import FreeRigidBody, HeavyTop, TopParameters
+from prkmk_jax.scenes import FreeRigidBody, HeavyTop
 from prkmk_jax.scenes.rigid_body import PAPER_INERTIA, random_rotation
 
 STEP = {"free body": 0.1, "heavy top": 0.05}
 SETTINGS = ("round-off", "tolerance")
 FREE = FreeRigidBody()
 TOP = HeavyTop()
-TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))
+TOP_ARGS = C.top_parameters()
 SCENES = {"free body": (FREE, jnp.asarray(PAPER_INERTIA)), "heavy top": (TOP, TOP_ARGS)}
 ERROR_KINDS = {"orthogonality": "absolute"}
 """Errors taken as they are; the others relative to their initial value."""

@@ -35,10 +35,10 @@ import jax.numpy as jnp
 
 import _common as C
 import prkmk_jax as pk
-from prkmk_jax.scenes import FreeRigidBody, HeavyTop, TopParameters
+from prkmk_jax.scenes import FreeRigidBody, HeavyTop
 
 H = 0.01
-TOP_ARGS = TopParameters(jnp.array([1.0, 0.8, 0.4]), jnp.array([0.1, 0.2, 0.9]))  # accuracy.py's heavy top
+TOP_ARGS = C.top_parameters()
 QUATERNIONS = FreeRigidBody(pk.Cotangent(pk.UnitQuaternion))  # the attitude as a unit quaternion
 QUATERNION_RKMK8 = QUATERNIONS.method(pk.dormand_prince_8, pk.Cayley())
 
