@@ -111,6 +111,58 @@ def _jacobi(u: Array, m: Array, m1: Array) -> tuple[Array, Array, Array, Array]:
     return sn, cn, dn, am
 
 
+_NEAR_ONE = 1e-3
+"""Below this 1 − m, `_reduced_jacobi` takes the functions from
+`_jacobi_near_one`, whose `_ASCENDING_LEVELS` leave a parameter within
+about (1 − m)⁸/10⁶ of 1."""
+_ASCENDING_LEVELS = 3
+
+
+def _jacobi_near_one(x: Array, m1: Array) -> tuple[Array, Array, Array]:
+    """(sn, cn, dn) of x for 1 − m = m1 ≤ `_NEAR_ONE` and |x| ≤ K/2, each to
+    its own relative accuracy, by ascending Landen transformations
+    (DLMF 22.7.4–6): with k = √m and k₂′ = (1 − k)/(1 + k) = m1/(1 + k)²,
+    sn(x, k) = 2/(1 + k)·sn cn/dn, cn(x, k) = (1 + k)/(2k)·(dn² − k₂′)/dn and
+    dn(x, k) = (1 + k)/2·(dn² + k₂′)/dn, the right-hand sides at
+    w = (1 + k)x/2 and modulus k₂, whose 1 − k₂² is about (m1/4)². After
+    `_ASCENDING_LEVELS` the parameter is 1 to far below an ulp over
+    |w| ≤ K/2 (the error of taking it as 1 grows like (1 − m)·e^{2|w|}),
+    where sn = tanh w and cn = dn = sech w: no amplitude is formed, so cn
+    and dn keep their relative accuracy where they are small (near K/2,
+    both about √k′). dn² − k₂′ does not cancel there: k₂′ ≈ k′²/4 against
+    dn² ≈ k′."""
+    moduli, complements = [], [m1]
+    for _ in range(_ASCENDING_LEVELS):
+        k = jnp.sqrt(1 - complements[-1])
+        moduli.append(k)
+        complements.append((complements[-1] / (1 + k) ** 2) ** 2)
+    # w = x·Π(1 + k)/2 as x − x·δ, δ = 1 − Π(1 − (1 − k)/2) small and
+    # (1 − k)/2 = m1/(2(1 + k)): w rounded once, as sech w's relative
+    # accuracy asks (it loses w's absolute error).
+    shrink = jnp.zeros_like(m1)
+    for k, m1_level in zip(moduli, complements):
+        part = m1_level / (2 * (1 + k))
+        shrink = shrink + part - shrink * part
+    w = x - x * shrink
+    sech = 1 / jnp.cosh(w)
+    sn, cn, dn = jnp.tanh(w), sech, sech
+    for level in reversed(range(_ASCENDING_LEVELS)):
+        k, k2_complement = moduli[level], complements[level] / (1 + moduli[level]) ** 2
+        dn_squared = dn * dn
+        sn, cn, dn = (
+            2 / (1 + k) * sn * cn / dn,
+            (1 + k) / (2 * k) * (dn_squared - k2_complement) / dn,
+            (1 + k) / 2 * (dn_squared + k2_complement) / dn,
+        )
+    # sn² + cn² = 1 and dn² = m1 + m·cn² to round-off, as sin, cos and
+    # `_jacobi`'s dn hold them: a state built from these stays on its
+    # invariant surfaces without a lean (the transformations' own rounding
+    # need not cancel on average).
+    radius = jnp.sqrt(sn * sn + cn * cn)
+    sn, cn = sn / radius, cn / radius
+    return sn, cn, jnp.sqrt(m1 + (1 - m1) * cn * cn)
+
+
 def _reduced_jacobi(u: Array, m: Array, m1: Array) -> tuple[Array, Array, Array, Array]:
     """u = 2jK + r with |r| ≤ K: (j, sn r, cn r ≥ 0, dn r), for 0 ≤ m < 1.
 
@@ -120,19 +172,23 @@ def _reduced_jacobi(u: Array, m: Array, m1: Array) -> tuple[Array, Array, Array,
     0) when 1 − m is small. Past half a quarter period, |r| > K/2, the
     functions come from v = K − |r| instead: sn(K − v) = cn v/dn v,
     cn(K − v) = k′ sn v/dn v, dn(K − v) = k′/dn v (k′ = √m1), where v's
-    amplitude is at most am(K/2) and cn v at least √(k′/(1 + k′)). Near
-    |r| = K/2 with 1 − m small this is not enough: there the descending
-    Landen recursion's arcsin works near 1 and multiplies the amplitude's
-    rounding by about 1/dn, so that cn and dn, both near √k′, keep a
-    relative error of about ε/k′ or more (ε the machine epsilon; 2.7e-11
-    for 1 − m = 3.4e-12, against 40-digit values) while sn and the
-    absolute errors stay at round-off."""
+    amplitude is at most am(K/2) and cn v at least √(k′/(1 + k′)). For
+    1 − m ≤ `_NEAR_ONE` the functions of |r| or v ≤ K/2 come from
+    `_jacobi_near_one` instead: `_jacobi`'s descending Landen recursion works
+    there with an arcsin near 1 and multiplies the amplitude's rounding by
+    about 1/dn, which near K/2 left cn and dn (both near √k′) with a
+    relative error of about ε/k′ (ε the machine epsilon)."""
     quarter = _ellipk(m1)  # ∞ at m = 1: then j = 0, r = u and the near branch
     u, m, m1, quarter = jnp.broadcast_arrays(u, m, m1, quarter)
     j = jnp.round(u / (2 * quarter))
     r = jnp.where(j == 0, u, u - 2 * j * quarter)
     far = jnp.abs(r) > quarter / 2
-    sn_v, cn_v, dn_v, _ = _jacobi(jnp.where(far, quarter - jnp.abs(r), r), m, m1)
+    within_half = jnp.where(far, quarter - jnp.abs(r), r)
+    sn_v, cn_v, dn_v, _ = _jacobi(within_half, m, m1)
+    near_one = m1 <= _NEAR_ONE
+    # Both branches are finite for every m1 (double `where`): the other's stand-in is m = 1.
+    near = _jacobi_near_one(within_half, jnp.where(near_one, m1, 0.0))
+    sn_v, cn_v, dn_v = (jnp.where(near_one, a, b) for a, b in zip(near, (sn_v, cn_v, dn_v)))
     k1 = jnp.sqrt(m1)
     sn = jnp.where(far, jnp.sign(r) * cn_v / dn_v, sn_v)
     cn = jnp.where(far, k1 * sn_v / dn_v, cn_v)

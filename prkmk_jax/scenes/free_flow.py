@@ -52,8 +52,9 @@ the axis Π circles, is a difference of the state's terms and is computed
 in twice the precision (`_separatrix_distance`), so that it is rounded
 relative to itself. Closer to the separatrix than about 1e-10 (relative)
 the flow itself is ill-conditioned (over T = 100 an ulp of Π moves the
-exact attitude by up to 1e-3), and within about 1e-12 of it the attitude
-can lose more than that conditioning explains (design notes).
+exact attitude by up to 1e-3): the errors there are those of the problem,
+since sn, cn and dn keep their relative accuracy as 1 − k² → 0 too
+(`elliptic._jacobi_near_one`; design notes).
 """
 
 import functools
