@@ -114,7 +114,7 @@ def _jacobi(u: Array, m: Array, m1: Array) -> tuple[Array, Array, Array, Array]:
 _NEAR_ONE = 1e-3
 """Below this 1 − m, `_reduced_jacobi` takes the functions from
 `_jacobi_near_one`, whose `_ASCENDING_LEVELS` leave a parameter within
-about (1 − m)⁸/10⁶ of 1."""
+about (1 − m)⁸/(3·10⁸) of 1 (each level squares it and divides by 16)."""
 _ASCENDING_LEVELS = 3
 
 
@@ -126,7 +126,7 @@ def _jacobi_near_one(x: Array, m1: Array) -> tuple[Array, Array, Array]:
     dn(x, k) = (1 + k)/2·(dn² + k₂′)/dn, the right-hand sides at
     w = (1 + k)x/2 and modulus k₂, whose 1 − k₂² is about (m1/4)². After
     `_ASCENDING_LEVELS` the parameter is 1 to far below an ulp over
-    |w| ≤ K/2 (the error of taking it as 1 grows like (1 − m)·e^{2|w|}),
+    |w| ≤ K/2 (the error of taking it as 1 grows like the last level's 1 − m times e^{2|w|}),
     where sn = tanh w and cn = dn = sech w: no amplitude is formed, so cn
     and dn keep their relative accuracy where they are small (near K/2,
     both about √k′). dn² − k₂′ does not cancel there: k₂′ ≈ k′²/4 against

@@ -180,8 +180,7 @@ def _steady_flow_jvp(primals, tangents):
 def _moving_flow(q: Array, pi: Array, inertia: Array, h: Array) -> tuple[Array, Array]:
     """The flow where Π moves: the elliptic formulas of the module docstring."""
     dtype = pi.dtype
-    squares = pi * pi
-    mu2 = jnp.sum(squares, axis=-1)
+    mu2 = jnp.sum(pi * pi, axis=-1)
     mu = jnp.sqrt(mu2)
 
     # The axes: lo, mid, hi by inertia (three distinct indices whatever the
