@@ -84,6 +84,36 @@ def test_section_4_3_update_formulas():
     np.testing.assert_allclose(y1.fiber.matrix, pk.SO3.exp(v1).matrix @ p0.matrix, atol=1e-13)
 
 
+def test_rkmk8_with_cayley_on_the_cotangent_bundle_is_the_matrix_method():
+    """T*SO(3) = SO(3)⋉ℝ³ as the 4×4 matrices [[g, 0], [Πᵀ, 1]] (their product
+    is the left-trivialised bundle's), the free body's generator (Π/I, 0) as
+    [[Ω̂, 0], [0, 0]]: RKMK 8 written on the matrices (cay(A) = (I − A/2)⁻¹(I + A/2),
+    dcay⁻¹_A(B) = (I + A/2) B (I − A/2) for y = y₀·cay(A)) is the library's step."""
+    scene, inertia = pk.scenes.FreeRigidBody(), jnp.asarray(INERTIA)
+    tableau, eye, h = pk.dormand_prince_8, jnp.eye(4), 0.25
+
+    def matrix(y):
+        return jnp.block([[y.base.matrix, jnp.zeros((3, 1))], [y.fiber[None, :], jnp.ones((1, 1))]])
+
+    def generator(y):
+        return jnp.zeros((4, 4)).at[:3, :3].set(pk.hat(y[3, :3] / inertia))
+
+    def step(y):
+        slopes = []
+        for row in tableau.a_first:
+            a = h * sum((c * k for c, k in zip(row, slopes) if c != 0), jnp.zeros((4, 4)))
+            stage = y @ jnp.linalg.solve(eye - a / 2, eye + a / 2)
+            slopes.append((eye + a / 2) @ generator(stage) @ (eye - a / 2))
+        a = h * sum(c * k for c, k in zip(tableau.b_first, slopes))
+        return y @ jnp.linalg.solve(eye - a / 2, eye + a / 2)
+
+    y = initial_state(pk.Cotangent(pk.SO3))
+    by_hand, method = matrix(y), scene.method(tableau, pk.Cayley())
+    for _ in range(8):
+        by_hand, y = step(by_hand), method.step(scene, 0.0, y, h, inertia).y
+    np.testing.assert_allclose(matrix(y), by_hand, rtol=0, atol=1e-13)
+
+
 # --- classical PRK on ℝⁿ×ℝⁿ ------------------------------------------------------------
 def _pendulum(t, y, args):
     q, p = y.base.value, y.fiber.value
