@@ -147,6 +147,25 @@ def diffrax_final(solver, adaptive, t_eval=None):
 FAMILY_STYLES = {"prkmk": "-o", "diffrax": "--s", "scipy": ":^"}
 
 
+def subplots(*args, **kw):
+    """`plt.subplots` on the Agg backend: the scripts draw to files."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt.subplots(*args, **kw)
+
+
+def save(fig, path, dpi=110, rect=(0, 0, 1, 1)):
+    """Lay the figure out inside `rect`, write it to `path` and close it."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout(rect=rect)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+
+
 def plot_against_wall(axes, keys, rows):
     """One log–log curve per method on each axis: `rows[key]` against
     `rows["wall_s"]` for the successful runs (``ok``), in order of cost;

@@ -1,38 +1,20 @@
-"""Accuracy per second of every family — the exact-flow splittings, PRKMK,
-diffrax and a hand-written splitting kernel — at the error targets 1e-6,
-1e-8 and 1e-10.
-
-Scenes: the free rigid body (paper inertia and momentum, random attitudes)
-and the heavy top (`HeavyTop`, inertia (1, 0.8, 0.4), lever (0.1, 0.2, 0.9)),
-T = 10; with `--scenes "forced body"` the forced body (`ForcedRigidBody`,
-`FORCED_ARGS`), whose rows compare its splittings with the exact free part
-against the axis splittings (the hand-written kernel has no torque). Methods:
-
-- the library's `Splitting` of the scene (Strang, and composed to order 4,
-  6 and 8), through `prkmk_jax.integrate`, the batch in the state;
-- the floor of that family: the order-8 (Kahan–Li s17) splitting written by
-  hand on the packed (12, batch) array, the axes in the library's order,
-  the outer rotations merged, with the same sine and cosine
-  (`prkmk_jax.groups.sincos`) and no other library code;
-- PRKMK: Lobatto IIIA–IIIB 6 with exp and with Cayley coordinates
-  (symplectic, implicit; stages stopped at the tolerance,
-  `iterate_until="tolerance"`), and the explicit Dormand–Prince 8 tableau (RKMK 8,
-  `pk.dormand_prince_8`) with Cayley coordinates, on the scene's bundle and,
-  for the heavy top, on G×g;
-- diffrax Dopri8 and Tsit5 on the embedding ℝ⁹×ℝ³, vmapped, with constant
-  steps and with a PID controller (swept over rtol = atol; the table gives
-  the most steps any trajectory took).
-
-For each method a sweep of step counts gives the error at T (max over the
-state's entries and the first 32 trajectories, against SciPy DOP853 at
-rtol = atol = 1e-13); at each target the smallest step count that reaches
-it is timed, all methods interleaved (median of the rounds, compile
-excluded). Writes accuracy.json and accuracy.png to --out.
+"""Accuracy per second at the error targets 1e-6, 1e-8 and 1e-10, T = 10, for
+the free rigid body and the heavy top (`--scenes "forced body"`: the forced
+body's splittings with the exact free part): the library's splittings
+(Strang, orders 4, 6, 8) and PRKMK (Lobatto 6 with exp and Cayley, stages
+stopped at the tolerance; RKMK 8 with Cayley), diffrax Dopri8 and Tsit5 on
+the embedding ℝ⁹×ℝ³ (constant steps and PID), and the floors written by hand
+with no library code: the order-8 splitting (`_floor_kernel`) and the free
+body's RKMK 8 Cayley (`_rkmk8_kernel`). Each step count (or tolerance) is
+swept against SciPy DOP853 (rtol = atol = 1e-13); at each target the
+cheapest run that reaches it is timed again, all interleaved.
 
     python benchmarks/accuracy.py
     python benchmarks/accuracy.py --quick
     python benchmarks/accuracy.py --short --regimes 1024,16384 --name accuracy_gpu   # on a GPU
     python benchmarks/accuracy.py --growth --float32 --regimes 64 --name accuracy_float32_growth
+    python benchmarks/accuracy.py --regimes single --scenes "free body" --name accuracy_one_trajectory \
+        --methods "PRKMK DP8 Cayley,RKMK 8 Cayley (hand-written)"
 """
 
 import concurrent.futures
@@ -46,6 +28,7 @@ from pathlib import Path
 import diffrax
 import jax
 import jax.numpy as jnp
+import matplotlib
 import numpy as np
 
 import _common as C
@@ -100,6 +83,37 @@ def _floor_kernel(scene_name, args, fractions):
     return step
 
 
+def _rkmk8_kernel(moments):
+    """RKMK 8 with Cayley on T*SO(3) = SO(3)⋉ℝ³, the free body's (Π/I, 0), by
+    hand on the rows of (Q, Π): a stage (u, m) sits at Π_i = cay(−u)Π + (I + û/2)⁻¹m,
+    its slope is (I + U/2)(Ω_i, 0)(I − U/2) in the matrices [[û, 0], [mᵀ, 0]]."""
+    tableau, moments = diffrax.Dopri8.tableau, [float(m) for m in np.asarray(moments)]
+
+    def cross(a, b):
+        return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+    def moved(u, m, x):  # cay(−u)x + (I + û/2)⁻¹m
+        ux, um, dot, scale = cross(u, x), cross(u, m), sum(a * b for a, b in zip(u, m)), 4.0 / (4.0 + sum(a * a for a in u))
+        return [x[i] + scale * (0.5 * cross(u, ux)[i] - ux[i] + m[i] - 0.5 * um[i] + 0.25 * u[i] * dot) for i in range(3)]
+
+    def slope(u, m, pi):  # one kernel a stage
+        omega = [a / b for a, b in zip(moved(u, m, pi), moments)]
+        uo, dot, z = cross(u, omega), sum(a * b for a, b in zip(u, omega)), [0.5 * c for c in cross(m, omega)]
+        x = [omega[i] + 0.5 * uo[i] + 0.25 * u[i] * dot for i in range(3)]
+        return list(jax.lax.optimization_barrier(jnp.stack(x + [z[i] + 0.5 * cross(u, z)[i] for i in range(3)])))
+
+    def step(z, h):
+        rows = list(z)
+        slopes = [[a / b for a, b in zip(rows[9:], moments)] + [0.0 * rows[9]] * 3]
+        for row in [*tableau.a_lower, tableau.b_sol]:
+            U = [h * sum(float(c) * k[i] for c, k in zip(row, slopes) if c != 0) for i in range(6)]
+            slopes += [slope(U[:3], U[3:], rows[9:])] if len(slopes) < len(tableau.b_sol) else []
+        q = [x for r in range(3) for x in moved(U[:3], [0.0] * 3, rows[3 * r : 3 * r + 3])]  # the rows of Q·cay(u)
+        return jax.lax.optimization_barrier(jnp.stack(q + moved(U[:3], U[3:], rows[9:])))
+
+    return step
+
+
 def _runners(scene_name, n, floor_fractions=pk.kahan_li_8.fractions, dtype=jnp.float64):
     scene, args = SCENES[scene_name]
     args = jax.tree.map(lambda a: jnp.asarray(a, dtype), args)
@@ -117,6 +131,9 @@ def _runners(scene_name, n, floor_fractions=pk.kahan_li_8.fractions, dtype=jnp.f
         z = jnp.moveaxis(jnp.concatenate([q.reshape(*q.shape[:-2], 9), p], axis=-1), -1, 0)
         z = jax.lax.fori_loop(0, n, lambda i, z: step(z, h), z)
         return jnp.moveaxis(z, 0, -1)
+
+    def by_hand(q, p):  # the free body's RKMK 8 Cayley, one trajectory (vmapped over a batch)
+        return jax.lax.fori_loop(0, n, lambda i, z: _rkmk8_kernel(args)(z, h), jnp.concatenate([q.reshape(9), p]))
 
     def fixed_step(solver):
         """diffrax with constant steps on the embedding ℝ⁹×ℝ³, vmapped."""
@@ -141,6 +158,7 @@ def _runners(scene_name, n, floor_fractions=pk.kahan_li_8.fractions, dtype=jnp.f
         out["PRKMK DP8 Cayley G×g"] = library(on_g_x_g.method(pk.dormand_prince_8, pk.Cayley()), on_g_x_g)
     if scene_name == "free body":
         out["exact flow"] = library(scene.exact_flow())
+        out[HAND_RKMK8] = lambda q, p: jax.vmap(by_hand)(q, p) if q.ndim == 3 else by_hand(q, p)
     for name, c in (("order 6", pk.kahan_li_6), ("order 8", pk.kahan_li_8)) if scene_name != "free body" else ():
         out[f"splitting {name} (exact free part)"] = library(scene.splitting(c, free_part="exact"))  # the kinetic energy whole
     if scene_name != "forced body":  # the hand-written kernel has the free body's and the heavy top's parts
@@ -187,6 +205,7 @@ SWEEPS = {
     "PRKMK Lobatto 6 Cayley": [60, 90, 140, 200, 300, 450, 700],
     "PRKMK DP8 Cayley": [30, 40, 50, 60, 70, 85, 100, 120, 140, 170, 200, 250],
     "PRKMK DP8 Cayley G×g": [30, 40, 50, 60, 70, 85, 100, 120, 140, 170, 200, 250],
+    "RKMK 8 Cayley (hand-written)": [30, 40, 50, 60, 70, 85, 100, 120, 140, 170, 200, 250],
     "floor order 8 (hand-written)": [16, 20, 24, 28, 32, 40, 48, 56, 64, 80, 96, 128, 160],
     "splitting order 6 (exact free part)": [30, 45, 70, 100, 150, 220],
     "splitting order 8 (exact free part)": [16, 20, 24, 28, 32, 40, 48, 64, 80, 96],
@@ -317,15 +336,10 @@ def plot(rows, path, targets):
     """Error at T against wall time, one panel per scene and regime, one
     curve per method through its step counts (each point the median of
     three runs, not interleaved: the tables' times are the interleaved ones)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     panels = sorted({(r["scene"], r["regime"]) for r in rows}, key=lambda k: (k[0], k[1] != "single", k[1]))
-    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.5), squeeze=False)
+    fig, axes = C.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.5), squeeze=False)
     methods = list(dict.fromkeys(r["method"] for r in rows))
-    colours = {m: plt.get_cmap("tab20")(k % 20) for k, m in enumerate(methods)}  # one colour per method in every panel
+    colours = {m: matplotlib.colormaps["tab20"](k % 20) for k, m in enumerate(methods)}  # one colour per method in every panel
     handles = {}
     for ax, (scene, regime) in zip(axes[0], panels):
         for method in methods:
@@ -341,15 +355,14 @@ def plot(rows, path, targets):
         ax.set_ylabel(f"max error at T = {T_END:g}")
         ax.grid(True, which="both", alpha=0.3)
     fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=min(len(handles), 7), fontsize=7)
-    fig.tight_layout(rect=(0, 0.12, 1, 1))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    C.save(fig, path, rect=(0, 0.12, 1, 1))
 
 
 RESULTS_FILES = ("accuracy", "accuracy_16384", "accuracy_gpu_float64")
 """The committed runs, in the order the tables list them (`--name` of each);
 not `accuracy_gpu_float32`, whose diffrax runs ran in float64 (README)."""
 FLOOR = "floor order 8 (hand-written)"
+HAND_RKMK8 = "RKMK 8 Cayley (hand-written)"
 FAMILIES = (("splittings", "splitting"), ("PRKMK", "PRKMK"), ("the exact flow", "exact flow"))
 """The library's families: name, and the prefix of their methods in the results."""
 DIFFRAX = ("Dopri8 fixed", "Tsit5 fixed", "Dopri8 PID", "Tsit5 PID")
@@ -445,7 +458,7 @@ def decision_table(entries: list[dict]) -> str:
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for e in entries:
-        ranked = sorted(((m, n, s, rtol) for m, (n, s, rtol) in e["runs"].items() if m != FLOOR), key=lambda r: r[2])
+        ranked = sorted(((m, n, s, rtol) for m, (n, s, rtol) in e["runs"].items() if m not in (FLOOR, HAND_RKMK8)), key=lambda r: r[2])
         first = _cell(ranked[0]) if ranked else "none of the runs reached it | –"
         second = _cell(ranked[1]) if len(ranked) > 1 else "– | –"
         symplectic = _fastest(e["runs"], is_symplectic)
@@ -481,16 +494,15 @@ def summary_table(entries: list[dict]) -> str:
 EXACT_PAIRS = (("exact flow", "splitting order 8"), ("exact flow", "PRKMK DP8 Cayley"))
 EXACT_PAIRS += tuple((f"splitting order {p} (exact free part)", f"splitting order {p}") for p in (6, 8))
 """The exact flows' table: each run against the run it would replace."""
+ONE_PAIRS = (("PRKMK DP8 Cayley", HAND_RKMK8),)  # one trajectory: the library's fastest run against its arithmetic by hand
 
 
-def exact_flow_table(data: dict) -> str:
-    """`--name accuracy_exact_flow`'s results: at each target, the free body's
-    exact flow and the heavy top's splittings with the exact free part
-    against the runs of the same job that split the kinetic energy into
-    axis terms (or integrate it), interleaved."""
+def pairs_table(data: dict, source: str, pairs) -> str:
+    """At each target, each run of `pairs` (`EXACT_PAIRS`, `ONE_PAIRS`)
+    against its peer, timed interleaved."""
     rows = []
-    for e in entries_of(data, "accuracy_exact_flow"):
-        for run, peer in ((a, b) for a, b in EXACT_PAIRS if a in e["runs"] and b in e["runs"]):
+    for e in entries_of(data, source):
+        for run, peer in ((a, b) for a, b in pairs if a in e["runs"] and b in e["runs"]):
             (n, seconds, _), (n_peer, seconds_peer, _) = e["runs"][run], e["runs"][peer]
             cells = [f"{run} (n = {n})", f"{seconds * 1e3:.3g}", f"{peer} (n = {n_peer})", f"{seconds_peer * 1e3:.3g}"]
             rows.append([e["scene"], _batch(e["regime"]), f"{e['target']:.0e}", *cells, f"{seconds / seconds_peer:.2f}"])
@@ -518,17 +530,15 @@ def growth_table(data: dict) -> str:
 
 
 def tables(results: Path) -> dict[str, str]:
-    """This script's tables, made from its results in `results` (`write_tables.py`):
-    `accuracy`, for each scene, batch, device, dtype and error target, the
-    fastest run of the library against diffrax's fastest and the order-8
-    splitting per step over the hand-written kernel; `decision`, the same
-    rows with the run to pick, the runner-up and the fastest symplectic run
-    (the hand-written kernel left out: it is not something a user calls);
-    `summary`, one row per scene, batch, device and dtype, the library's
-    time over diffrax's at each target."""
+    """This script's tables from its results in `results` (`write_tables.py`):
+    `accuracy` (each target's fastest library run against diffrax's, the
+    order-8 splitting per step over its hand-written kernel), `decision` (the
+    run to pick; hand-written kernels left out), `summary`, `exact_flow` and
+    `one_trajectory` (`pairs_table`)."""
     entries = load(results)
     out = {"accuracy": accuracy_table(entries), "decision": decision_table(entries), "summary": summary_table(entries)}
-    out["exact_flow"] = exact_flow_table(C.results_file(results, "accuracy_exact_flow.json"))
+    out["exact_flow"] = pairs_table(C.results_file(results, "accuracy_exact_flow.json"), "accuracy_exact_flow", EXACT_PAIRS)
+    out["one_trajectory"] = pairs_table(C.results_file(results, "accuracy_one_trajectory.json"), "accuracy_one_trajectory", ONE_PAIRS)
     return out | {"float32_growth": growth_table(C.results_file(results, "accuracy_float32_growth.json"))}
 
 

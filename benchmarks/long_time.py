@@ -133,12 +133,7 @@ def matched_cost(rows):
 
 
 def plot(rows, path, t_end):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(2, 2, figsize=(12, 9), sharex=True)
+    fig, axes = C.subplots(2, 2, figsize=(12, 9), sharex=True)
     labels = dict(
         energy="max |H/H₀ − 1|",
         momentum_norm="max ||Π| − |Π₀|| / |Π₀|",
@@ -153,9 +148,7 @@ def plot(rows, path, t_end):
         ax.set_xlabel("wall time after compilation (s)")
     axes[0, 1].legend(fontsize=7)
     fig.suptitle(f"Free rigid body, invariant drift over T = {t_end:g} against cost (values below 1e-17 drawn at 1e-17)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    C.save(fig, path)
 
 
 def long_time_table(results: Path) -> str:

@@ -225,12 +225,7 @@ def dopri8_at_equal_cost(sv, num_steps, batch, every, probe_steps):
 
 
 def chart(rows, dopri, out):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    fig, ax = C.subplots(figsize=(6.4, 4.4))
     h = STEP["free body"]
     styles = {"round-off": "-", "tolerance": "--"}
     charted = {}  # one line per method and setting: its longest run, then its largest batch
@@ -248,9 +243,7 @@ def chart(rows, dopri, out):
     ax.set_ylabel("median of the largest relative energy error so far")
     ax.legend(fontsize=8)
     ax.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(out / "round_off.png", dpi=120)
-    plt.close(fig)
+    C.save(fig, out / "round_off.png", dpi=120)
 
 
 def round_off_table(results: Path) -> str:

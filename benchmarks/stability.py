@@ -142,14 +142,9 @@ def main(argv=None):
 
 
 def plot(thresholds, grid, path, t_end):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     scenes = list(SCENES)
     methods = sorted({m for _, m in thresholds})
-    fig, ax = plt.subplots(figsize=(11, 5))
+    fig, ax = C.subplots(figsize=(11, 5))
     width = 0.8 / len(scenes)
     for k, scene in enumerate(scenes):
         vals = [thresholds.get((scene, m), {}).get("threshold", np.nan) for m in methods]
@@ -161,9 +156,7 @@ def plot(thresholds, grid, path, t_end):
     ax.set_title(f"Bounded over T = {t_end:g} (finite, implicit stages converged, energy error < 10 %); grid {grid[0]:.2g}…{grid[-1]:.2g}")
     ax.legend()
     ax.grid(True, axis="y", which="both", alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    C.save(fig, path)
 
 
 if __name__ == "__main__":

@@ -225,12 +225,7 @@ def main(argv=None):
 
 
 def plot(rows, path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(8, 5))
+    fig, ax = C.subplots(figsize=(8, 5))
     for name in dict.fromkeys(r["method"] for r in rows):
         pts = [r for r in rows if r["method"] == name]
         ax.loglog([p["batch"] for p in pts], [p["traj_steps_per_s"] for p in pts], "-o", label=name)
@@ -240,9 +235,7 @@ def plot(rows, path):
     ax.set_title("Free rigid body, h = 0.01, CPU")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    C.save(fig, path)
 
 
 if __name__ == "__main__":
