@@ -105,9 +105,9 @@ def _rkmk8_kernel(moments):
     def step(z, h):
         rows = list(z)
         slopes = [[a / b for a, b in zip(rows[9:], moments)] + [0.0 * rows[9]] * 3]
-        for row in [*tableau.a_lower, tableau.b_sol]:
+        for row in [*tableau.a_lower, tableau.b_sol]:  # the stages' rows, then b: the step's increment U
             U = [h * sum(float(c) * k[i] for c, k in zip(row, slopes) if c != 0) for i in range(6)]
-            slopes += [slope(U[:3], U[3:], rows[9:])] if len(slopes) < len(tableau.b_sol) else []
+            slopes += [] if row is tableau.b_sol else [slope(U[:3], U[3:], rows[9:])]
         q = [x for r in range(3) for x in moved(U[:3], [0.0] * 3, rows[3 * r : 3 * r + 3])]  # the rows of Q·cay(u)
         return jax.lax.optimization_barrier(jnp.stack(q + moved(U[:3], U[3:], rows[9:])))
 
@@ -345,7 +345,7 @@ def plot(rows, path, targets):
         for method in methods:
             runs = sorted((r for r in rows if (r["scene"], r["regime"], r["method"]) == (scene, regime, method)), key=lambda r: r["steps"])
             if runs:  # in order of step count: a timing's noise shows as a step back
-                style = "-o" if is_library(method) else ("-.v" if method.startswith("floor") else "--s")
+                style = "-o" if is_library(method) else ("-.v" if "hand-written" in method else "--s")
                 errors = [max(r["error"], 1e-17) for r in runs]
                 (handles[method],) = ax.loglog([r["wall_s"] for r in runs], errors, style, ms=3, color=colours[method], label=method)
         for target in targets:
