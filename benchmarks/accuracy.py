@@ -13,8 +13,6 @@ cheapest run that reaches it is timed again, all interleaved.
     python benchmarks/accuracy.py --quick
     python benchmarks/accuracy.py --short --regimes 1024,16384 --name accuracy_gpu   # on a GPU
     python benchmarks/accuracy.py --growth --float32 --regimes 64 --name accuracy_float32_growth
-    python benchmarks/accuracy.py --regimes single --scenes "free body" --name accuracy_one_trajectory \
-        --methods "PRKMK DP8 Cayley,RKMK 8 Cayley (hand-written)"
 """
 
 import concurrent.futures
@@ -552,6 +550,7 @@ def _arguments(parser):
     parser.add_argument("--methods", default="", help="comma-separated methods to run (default: all of the sweep)")
     parser.add_argument("--scenes", default="free body,heavy top", help="comma-separated; a file's other scenes' rows are kept")
     parser.add_argument("--parallel-compile", action="store_true", help="compile each sweep on threads (compile times not recorded)")
+    parser.add_argument("--rounds", type=int, default=7, help="interleaved rounds timing each target's picks (default 7)")
 
 
 def main(argv=None):
@@ -572,7 +571,7 @@ def main(argv=None):
             only = [m for m in args.methods.split(",") if m]
             options = dict(short=args.short, dtype=dtype, parallel_compile=args.parallel_compile, only=only, growth=args.growth)
             options["without"] = args.without.split(",")
-            rows += run(regime, scene_name, args.quick, rounds=3 if args.quick else 7, **options)
+            rows += run(regime, scene_name, args.quick, rounds=3 if args.quick else args.rounds, **options)
             write()  # what a run cut short has measured so far
     plot(rows, out / f"{args.name}.png", targets)
     data = dict(machine=C.machine(), t_end=T_END, targets=targets, rows=rows)
