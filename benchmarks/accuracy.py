@@ -92,13 +92,13 @@ def _rkmk8_kernel(moments):
 
     def moved(u, m, x):  # cay(−u)x + (I + û/2)⁻¹m
         ux, um, dot, scale = cross(u, x), cross(u, m), sum(a * b for a, b in zip(u, m)), 4.0 / (4.0 + sum(a * a for a in u))
-        return [x[i] + scale * (0.5 * cross(u, ux)[i] - ux[i] + m[i] - 0.5 * um[i] + 0.25 * u[i] * dot) for i in range(3)]
+        return [x[i] + scale * (0.5 * uux - ux[i] + m[i] - 0.5 * um[i] + 0.25 * u[i] * dot) for i, uux in enumerate(cross(u, ux))]
 
     def slope(u, m, pi):  # one kernel a stage
         omega = [a / b for a, b in zip(moved(u, m, pi), moments)]
         uo, dot, z = cross(u, omega), sum(a * b for a, b in zip(u, omega)), [0.5 * c for c in cross(m, omega)]
         x = [omega[i] + 0.5 * uo[i] + 0.25 * u[i] * dot for i in range(3)]
-        return list(jax.lax.optimization_barrier(jnp.stack(x + [z[i] + 0.5 * cross(u, z)[i] for i in range(3)])))
+        return list(jax.lax.optimization_barrier(jnp.stack(x + [z[i] + 0.5 * uz for i, uz in enumerate(cross(u, z))])))
 
     def step(z, h):
         rows = list(z)

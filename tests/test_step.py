@@ -98,14 +98,15 @@ def test_rkmk8_with_cayley_on_the_cotangent_bundle_is_the_matrix_method():
     def generator(y):
         return jnp.zeros((4, 4)).at[:3, :3].set(pk.hat(y[3, :3] / inertia))
 
+    def cay(a):
+        return jnp.linalg.solve(eye - a / 2, eye + a / 2)
+
     def step(y):
         slopes = []
         for row in tableau.a_first:
             a = h * sum((c * k for c, k in zip(row, slopes) if c != 0), jnp.zeros((4, 4)))
-            stage = y @ jnp.linalg.solve(eye - a / 2, eye + a / 2)
-            slopes.append((eye + a / 2) @ generator(stage) @ (eye - a / 2))
-        a = h * sum(c * k for c, k in zip(tableau.b_first, slopes))
-        return y @ jnp.linalg.solve(eye - a / 2, eye + a / 2)
+            slopes.append((eye + a / 2) @ generator(y @ cay(a)) @ (eye - a / 2))
+        return y @ cay(h * sum(c * k for c, k in zip(tableau.b_first, slopes)))
 
     y = initial_state(pk.Cotangent(pk.SO3))
     by_hand, method = matrix(y), scene.method(tableau, pk.Cayley())
