@@ -186,15 +186,17 @@ def compile_fn(fn, *args):
     return compiled, time.perf_counter() - start
 
 
+def call_seconds(fn, *args):
+    """Wall time of one call, its outputs ready."""
+    start = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    return time.perf_counter() - start
+
+
 def median_time(compiled, *args, repeats=5):
     """Median wall time of `repeats` runs after one warm-up, and the output."""
     out = jax.block_until_ready(compiled(*args))
-    runs = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(compiled(*args))
-        runs.append(time.perf_counter() - start)
-    return statistics.median(runs), out
+    return statistics.median(call_seconds(compiled, *args) for _ in range(repeats)), out
 
 
 def compile_all(fns, *args):
@@ -209,13 +211,15 @@ def compile_all(fns, *args):
 
 def interleaved_times(compiled, *args, rounds):
     """Wall times of a dict of compiled functions run in alternation, one of
-    each per round, so that a slow spell of the machine hits all of them."""
+    each per round, so that a slow spell of the machine hits all of them.
+    Each is called twice in its turn and the second call timed: a program
+    called right after another runs tens of µs slower (caches), much of a
+    one-trajectory run, and repeated calls are what a run's cost is."""
     times = {name: [] for name in compiled}
     for _ in range(rounds):
         for name, fn in compiled.items():
-            start = time.perf_counter()
             jax.block_until_ready(fn(*args))
-            times[name].append(time.perf_counter() - start)
+            times[name].append(call_seconds(fn, *args))
     return times
 
 

@@ -105,9 +105,7 @@ def measure(path, batch, steps, rounds):
         compiled[name], compile_s[name] = C.compile_fn(fn, *args)
     rss["compiled"] = _peak_rss_mb()
     for name, fn in compiled.items():
-        start = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        first[name] = [time.perf_counter() - start]
+        first[name] = [C.call_seconds(fn, *args)]
         rss[name] = _peak_rss_mb()
     memory = compiled["value_and_grad"].memory_analysis()
     times = C.interleaved_times(compiled, *args, rounds=rounds) if rounds else first
