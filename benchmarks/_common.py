@@ -213,8 +213,8 @@ def interleaved_times(compiled, *args, rounds):
     """Wall times of a dict of compiled functions run in alternation, one of
     each per round, so that a slow spell of the machine hits all of them.
     Each is called twice in its turn and the second call timed: a program
-    called right after another runs tens of µs slower (caches), much of a
-    one-trajectory run, and repeated calls are what a run's cost is."""
+    called right after another runs slower (caches), which a one-trajectory
+    run feels, and repeated calls are what a run's cost is."""
     times = {name: [] for name in compiled}
     for _ in range(rounds):
         for name, fn in compiled.items():

@@ -259,7 +259,7 @@ SHORT_SWEEPS_FLOAT32 = {  # --short --float32: around the float32 targets
 def _compiled(jitted, q, p, parallel):
     """{key: (jitted function, seconds of the first call, which compiles it)}: later calls go through `jax.jit`'s
     dispatch, as users' do (a `Compiled` with host callbacks, as the library's and diffrax's checks are, is
-    dispatched from Python, tens of µs slower). `parallel`: on threads, no seconds."""
+    dispatched from Python, which a short run feels). `parallel`: on threads, no seconds."""
     if not parallel:
         return {key: (fn, C.call_seconds(fn, q, p)) for key, fn in jitted.items()}
     with concurrent.futures.ThreadPoolExecutor(max_workers=os.cpu_count()) as pool:  # XLA compiles outside the GIL
@@ -297,12 +297,11 @@ def run(regime, scene_name, quick, rounds, short=False, dtype=jnp.float64, paral
         for n in (sweep[:1] if quick else sweep)
     }
     for (method, n), (compiled, first_call_s) in _compiled(jitted, q, p, parallel_compile).items():
-        out = compiled(q, p)
+        wall_s, out = C.median_time(compiled, q, p, repeats=3)  # the chart's point; the table times the picks interleaved
         adaptive = method in ADAPTIVE  # n is rtol; the steps are the most any trajectory took
         z, steps = (out[0], int(np.max(out[1]))) if adaptive else (out, n)
         z = np.asarray(z).reshape(-1, 12)[: len(checked)]
         error = float(np.max(np.abs(z - reference)))
-        wall_s, _ = C.median_time(compiled, q, p, repeats=3)  # the chart's point; the table times the picks interleaved
         compile_s = None if first_call_s is None else first_call_s - wall_s  # tracing and compiling
         rows.append(dict(regime=regime, scene=scene_name, method=method, steps=steps, error=error, wall_s=wall_s, compile_s=compile_s))
         rows[-1]["dtype"] = jnp.dtype(dtype).name
