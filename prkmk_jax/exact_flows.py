@@ -127,7 +127,9 @@ def rotated_array(z: Packed, pairs: tuple[tuple[int, int], ...], sine: Array, co
     where several consumers read them, as in `Splitting.reverse_step`."""
     partner, sign, moved = _pair_tables(z, pairs)
     scale = jnp.where(moved, cosine, jnp.ones_like(cosine))
-    return scale * z + (sign * sine) * jnp.take(z, partner, axis=0)
+    # The partners are in range: "clip" reads them as they are, where the
+    # default mode would mask every element against an out-of-range index.
+    return scale * z + (sign * sine) * jnp.take(z, partner, axis=0, mode="clip")
 
 
 class AbstractExactFlow(eqx.Module):
@@ -266,11 +268,14 @@ class AxisRotation(AbstractExactFlow):
         # (a, b) ↦ (c a + s b, c b − s a) is a rotation: its transpose is the
         # inverse, and its derivatives in s and c read the rows it turns.
         # The turns move disjoint rows, so each reads and undoes its own rows.
+        # The coefficients' cotangents are sums over the turned pairs, written
+        # out and computed once: a reduction over the rows runs as a loop of
+        # its own per coefficient, slower than the rest of the sub-step.
         cotangent_coefficients = []
         for pairs, sine, cosine in self._turns(coefficients):
-            partner, sign, moved = _pair_tables(z, pairs)
-            cotangent_sine = jnp.sum(sign * cotangent * jnp.take(z, partner, axis=0), axis=0)
-            cotangent_coefficients += [cotangent_sine, jnp.sum(moved * cotangent * z, axis=0)]
+            cotangent_sine = sum(cotangent[j] * z[k] - cotangent[k] * z[j] for j, k in pairs)
+            cotangent_cosine = sum(cotangent[j] * z[j] + cotangent[k] * z[k] for j, k in pairs)
+            cotangent_coefficients += computed_once(cotangent_sine, cotangent_cosine)
             cotangent = rotated_array(cotangent, pairs, -sine, cosine)
         return cotangent, tuple(cotangent_coefficients)
 
