@@ -45,14 +45,22 @@ def computed_once(*trees: PyTree) -> PyTree:
     XLA fuses arithmetic into every consumer that reads it, so a sine and
     cosine read by many rows of a rotation, or a step's change read twice
     by an error-free sum, would be evaluated again in each. A barrier on
-    the arrays raveled into one keeps them whole (a barrier on a tuple does
-    not: XLA's fusion goes through it)."""
+    the arrays joined into one keeps them whole (a barrier on a tuple does
+    not: XLA's fusion goes through it): stacked where they share a shape of
+    two or more axes (a packed state and its cotangent with the batch as
+    their last axis), so that the joined array keeps their last axis, along
+    which XLA vectorises the loops that write and read it; raveled and
+    concatenated otherwise."""
     leaves, structure = jax.tree.flatten(trees)
     if len({jnp.result_type(leaf) for leaf in leaves}) > 1:
         raise TypeError(f"computed_once takes arrays of one dtype, got {sorted({str(jnp.result_type(x)) for x in leaves})}.")
-    flat = jax.lax.optimization_barrier(jnp.concatenate([jnp.ravel(leaf) for leaf in leaves]))
-    ends = np.cumsum([jnp.size(leaf) for leaf in leaves])
-    parts = [flat[end - jnp.size(leaf) : end].reshape(jnp.shape(leaf)) for leaf, end in zip(leaves, ends)]
+    if len({jnp.shape(leaf) for leaf in leaves}) == 1 and jnp.ndim(leaves[0]) >= 2:
+        stacked = jax.lax.optimization_barrier(jnp.stack(leaves))
+        parts = list(stacked)
+    else:
+        flat = jax.lax.optimization_barrier(jnp.concatenate([jnp.ravel(leaf) for leaf in leaves]))
+        ends = np.cumsum([jnp.size(leaf) for leaf in leaves])
+        parts = [flat[end - jnp.size(leaf) : end].reshape(jnp.shape(leaf)) for leaf, end in zip(leaves, ends)]
     out = jax.tree.unflatten(structure, parts)
     return out[0] if len(trees) == 1 else out
 
