@@ -277,6 +277,7 @@ REVERSE_VARIANTS = {  # name: (coefficients, coordinates, free part)
     "Strang": (None, pk.Exp(), "axes"),
     "Cayley": (None, pk.Cayley(), "axes"),
     "triple jump": (pk.yoshida_triple_jump, pk.Exp(), "axes"),
+    "triple jump, Cayley": (pk.yoshida_triple_jump, pk.Cayley(), "axes"),  # Cayley's half steps do not merge
     "exact free part": (None, pk.Exp(), "exact"),
 }
 
@@ -285,7 +286,8 @@ REVERSE_VARIANTS = {  # name: (coefficients, coordinates, free part)
     "name, variant, batch",
     [(name, "Strang", 3) for name in CASES]
     # The coordinates and the composition do not depend on the scene: one each.
-    + [("heavy top", "Cayley", 3), ("free body", "triple jump", 1), ("forced body", "exact free part", 3)],
+    + [("heavy top", "Cayley", 3), ("free body", "triple jump", 1), ("heavy top", "triple jump, Cayley", 1)]
+    + [("forced body", "exact free part", 3)],
 )
 def test_reverse_step_undoes_the_step_and_gives_its_vjp(name, variant, batch):
     """`Splitting.reverse_step` from a step's end: the step's start (to

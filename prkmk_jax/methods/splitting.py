@@ -33,6 +33,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import PyTree
 
 from .._bundles import BundleElement
@@ -264,18 +265,19 @@ class Splitting(AbstractOfOneScene):
         if is_low_precision(dtype):
             raise ValueError(f"reverse_step needs a dtype with machine epsilon at most {LOW_PRECISION_EPS:g}, got {dtype}.")
         t, dt = jnp.asarray(t, dtype), jnp.asarray(dt, dtype)
-        plan = self._sub_steps(len(self._parts(args)))
         z = self.scene.pack(y_next, args)
         _, pull_unpack = jax.vjp(lambda z: self.scene.unpack(z, y_next, args), z)
         (cotangent_z,) = pull_unpack(cotangent)
         args_dynamic, args_static = eqx.partition(args, eqx.is_inexact_array)
-        cotangent_args = jax.tree.map(jnp.zeros_like, args_dynamic)
-        for part, start, step in reversed(plan):
+        num_parts = len(self._parts(args))
 
-            def coefficients(z, args_dynamic, part=part, start=start, step=step):
+        def back_through(part, start, step, z, cotangent_z, cotangent_args):
+            """One sub-step (part `part` from t + start·dt over step·dt) undone
+            from its end, and the cotangents pulled back through it."""
+
+            def coefficients(z, args_dynamic):
                 args = eqx.combine(args_dynamic, args_static)
-                flow = self._parts(args)[part]
-                return flow.coefficients(self.coordinates, t + start * dt, z, step * dt, args)
+                return self._parts(args)[part].coefficients(self.coordinates, t + start * dt, z, step * dt, args)
 
             flow = self._parts(args)[part]
             if flow.reads_unmoved_rows_only:
@@ -288,13 +290,47 @@ class Splitting(AbstractOfOneScene):
                 c, pull_coefficients = jax.vjp(coefficients, z, args_dynamic)
             cotangent_moved, cotangent_c = flow.pulled_back(z, c, cotangent_z)
             cotangent_read, cotangent_args_part = pull_coefficients(cotangent_c)
-            cotangent_z = cotangent_moved + cotangent_read
             cotangent_args = jax.tree.map(jnp.add, cotangent_args, cotangent_args_part)
             # Each sub-step's state and cotangent are computed once, at any
             # batch: fused across sub-steps, XLA's program and its compile
             # time grow far faster than the number of sub-steps.
-            z, cotangent_z = computed_once(z, cotangent_z)
+            z, cotangent_z = computed_once(z, cotangent_moved + cotangent_read)
+            return z, cotangent_z, cotangent_args
+
+        carry = (z, cotangent_z, jax.tree.map(jnp.zeros_like, args_dynamic))
+        num_strang_steps = 1 if self.coefficients is None else len(self.coefficients.fractions)
+        leading, parts, starts, steps = _as_repeated_steps(self._sub_steps(num_parts), num_parts, num_strang_steps)
+        if len(starts) == 1:
+            for part, start, step in zip(reversed(parts), reversed(starts[0]), reversed(steps[0])):
+                carry = back_through(part, float(start), float(step), *carry)
+        else:
+            # A composed step's Strang steps from the last, in a `lax.scan`:
+            # unrolled, XLA compiles the reverse of dozens of sub-steps.
+            def back_one_strang_step(carry, starts_and_steps):
+                for part, start, step in zip(reversed(parts), *(jnp.flip(x) for x in starts_and_steps)):
+                    carry = back_through(part, start, step, *carry)
+                return carry, None
+
+            carry = jax.lax.scan(back_one_strang_step, carry, (jnp.asarray(starts, dtype), jnp.asarray(steps, dtype)), reverse=True)[0]
+        for part, start, step in reversed(leading):
+            carry = back_through(part, start, step, *carry)
+        z, cotangent_z, cotangent_args = carry
         y = self.scene.unpack(z, y_next, args)
         _, pull_pack = jax.vjp(lambda y: self.scene.pack(y, args), y)
         (cotangent_y,) = pull_pack(cotangent_z)
         return y, cotangent_y, cotangent_args
+
+
+def _as_repeated_steps(plan, num_parts: int, num_strang_steps: int):
+    """`plan` (`sub_steps`) as (leading sub-steps, the parts of one repeated
+    stretch, its starts and its steps): each Strang step is the same parts
+    in the same order from the second sub-step on, where the outermost
+    part's half steps are merged (the first sub-step leads), and from the
+    first otherwise. Starts and steps are NumPy arrays, one row a Strang
+    step, with the plan's own values."""
+    merged = len(plan) < num_strang_steps * (2 * num_parts - 1)
+    leading, rest = (plan[:1], plan[1:]) if merged else ((), plan)
+    rows = np.asarray([entry[1:] for entry in rest], np.float64).reshape(num_strang_steps, -1, 2)
+    parts = tuple(part for part, _, _ in rest[: rows.shape[1]])
+    assert all(tuple(part for part, _, _ in rest[k * len(parts) : (k + 1) * len(parts)]) == parts for k in range(num_strang_steps))
+    return leading, parts, rows[..., 0], rows[..., 1]
