@@ -139,28 +139,7 @@ def differentiated_as(value, differentiated):
     closure-converted, so that what they close over (the state, the field's
     parameters, `args`) enters the derivative as inputs; they must close
     over the same values."""
-
-    def converted(fn):
-        return eqx.filter_closure_convert(lambda: jax.tree.map(_batch_axis_first, fn()))
-
-    return _differentiated_as(converted(value), converted(differentiated))
-
-
-def _batch_axis_first(x):
-    """x unchanged, and under `vmap` with its batch axis first.
-
-    `vmap` batches a custom JVP's function and its rule apart, and each
-    result keeps the batch axis where its last operation left it (a rotated
-    row of a packed state, say, batched along its second axis); where a
-    transformation evaluates both (a step under `jax.checkpoint` or in a
-    scan, differentiated through a batch mapped with `vmap`), JAX pairs the
-    function's value with the rule's tangent as if their batch axes agreed,
-    and a gradient or a directional derivative fails on the mismatch.
-    Joined by a concatenation, whose batching puts the batch axis first,
-    both agree; unbatched, XLA folds the slices and their join away."""
-    if jnp.ndim(x) == 0:
-        return x
-    return jax.lax.concatenate([x[:1], x[1:]], 0)
+    return _differentiated_as(eqx.filter_closure_convert(value), eqx.filter_closure_convert(differentiated))
 
 
 @eqx.filter_custom_jvp
