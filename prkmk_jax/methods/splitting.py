@@ -196,7 +196,7 @@ class Splitting(AbstractOfOneScene):
             # copy of it for each of its Strang steps.
             z_k = in_loop()
         else:
-            z_k = differentiated_as(unrolled, in_loop)
+            z_k = differentiated_as(lambda: _batch_axis_first(unrolled()), lambda: _batch_axis_first(in_loop()))
         rounding = None
         if change_only:
             # What the sum lost is unpacked as the state is (a relabelling of
@@ -319,6 +319,21 @@ class Splitting(AbstractOfOneScene):
         _, pull_pack = jax.vjp(lambda y: self.scene.pack(y, args), y)
         (cotangent_y,) = pull_pack(cotangent_z)
         return y, cotangent_y, cotangent_args
+
+
+def _batch_axis_first(z):
+    """z unchanged, and under `vmap` with its batch axis first.
+
+    `vmap` batches a custom JVP's function and its rule apart, and each
+    result keeps the batch axis where its last operation left it: the
+    unrolled sub-steps' rotated rows of the packed state leave it second,
+    the scan of Strang steps first. Where a transformation evaluates both
+    (a step under `jax.checkpoint` or in a scan, differentiated through a
+    batch mapped with `vmap`), JAX pairs the value with the tangent as if
+    their batch axes agreed, and the derivative fails on the mismatch.
+    Joined by a concatenation, whose batching puts the batch axis first,
+    both agree; unbatched, XLA folds the slices and their join away."""
+    return jax.lax.concatenate([z[:1], z[1:]], 0)
 
 
 def _as_repeated_steps(plan, num_parts: int, num_strang_steps: int):
