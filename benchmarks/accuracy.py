@@ -257,14 +257,13 @@ SHORT_SWEEPS_FLOAT32 = {  # --short --float32: around the float32 targets
 
 
 def _compiled(jitted, q, p, parallel):
-    """{key: (jitted function, seconds of the first call, which compiles it)}: later calls go through `jax.jit`'s
-    dispatch, as users' do (a `Compiled` with host callbacks, as the library's and diffrax's checks are, is
-    dispatched from Python, which a short run feels). `parallel`: on threads, no seconds."""
-    if not parallel:
-        return {key: (fn, C.call_seconds(fn, q, p)) for key, fn in jitted.items()}
+    """(key, (jitted function, seconds of the first call, which compiles it)), a key at a time (the caller frees
+    programs as it goes). Later calls go through `jax.jit`'s dispatch, as users' do (a `Compiled` with host callbacks,
+    as the library's and diffrax's checks are, is dispatched from Python). `parallel`: on threads first, no seconds."""
     with concurrent.futures.ThreadPoolExecutor(max_workers=os.cpu_count()) as pool:  # XLA compiles outside the GIL
-        list(pool.map(lambda fn: fn(q, p), jitted.values()))
-    return {key: (fn, None) for key, fn in jitted.items()}
+        list(pool.map(lambda fn: fn(q, p), jitted.values() if parallel else ()))
+    for key in list(jitted):
+        yield key, (jitted[key], None if parallel else C.call_seconds(jitted[key], q, p))
 
 
 def run(regime, scene_name, quick, rounds, short=False, dtype=jnp.float64, parallel_compile=False, without=(), only=(), growth=False):
@@ -296,7 +295,7 @@ def run(regime, scene_name, quick, rounds, short=False, dtype=jnp.float64, paral
         if method in offered and not (quick and method in QUICK_SKIPS) and method not in without and (not only or method in only)
         for n in (sweep[:1] if quick else sweep)
     }
-    for (method, n), (compiled, first_call_s) in _compiled(jitted, q, p, parallel_compile).items():
+    for (method, n), (compiled, first_call_s) in _compiled(jitted, q, p, parallel_compile):
         wall_s, out = C.median_time(compiled, q, p, repeats=3)  # the chart's point; the table times the picks interleaved
         adaptive = method in ADAPTIVE  # n is rtol; the steps are the most any trajectory took
         z, steps = (out[0], int(np.max(out[1]))) if adaptive else (out, n)
@@ -314,6 +313,8 @@ def run(regime, scene_name, quick, rounds, short=False, dtype=jnp.float64, paral
         for target in targets:
             if error <= target and (method, target) not in chosen:
                 chosen[(method, target)] = (steps, compiled, rows[-1])
+        if not any(c is compiled for _, c, _ in chosen.values()):  # never timed again: freed (a sweep's hundred programs
+            del jitted[(method, n)]  # held at once bring a process near Linux's limit of memory maps)
     for target in targets:
         picks = {m: v for (m, t), v in chosen.items() if t == target}
         if not picks:
