@@ -260,8 +260,9 @@ def _compiled(jitted, q, p, parallel):
     """(key, (jitted function, seconds of the first call, which compiles it)), a key at a time (the caller frees
     programs as it goes). Later calls go through `jax.jit`'s dispatch, as users' do (a `Compiled` with host callbacks,
     as the library's and diffrax's checks are, is dispatched from Python). `parallel`: on threads first, no seconds."""
-    with concurrent.futures.ThreadPoolExecutor(max_workers=os.cpu_count()) as pool:  # XLA compiles outside the GIL
-        list(pool.map(lambda fn: fn(q, p), jitted.values() if parallel else ()))
+    if parallel:
+        with concurrent.futures.ThreadPoolExecutor(max_workers=os.cpu_count()) as pool:  # XLA compiles outside the GIL
+            list(pool.map(lambda fn: fn(q, p), jitted.values()))
     for key in list(jitted):
         yield key, (jitted[key], None if parallel else C.call_seconds(jitted[key], q, p))
 
@@ -276,8 +277,7 @@ def run(regime, scene_name, quick, rounds, short=False, dtype=jnp.float64, paral
     z0 = np.concatenate([np.asarray(q0).reshape(-1, 9), np.asarray(p0).reshape(-1, 3)], axis=-1)
     checked = z0[: (1 if batch is None else 32)]
     reference = _reference(scene_name, checked)
-    rows = []
-    chosen = {}
+    rows, chosen = [], {}
     sweeps = SWEEPS if not short else SHORT_SWEEPS if dtype == jnp.float64 else SHORT_SWEEPS_FLOAT32
     sweeps = GROWTH_SWEEPS if growth else sweeps
     # --quick: every code path once; the floor composes Suzuki's 5 steps (quicker to compile).

@@ -19,7 +19,7 @@ settings.load_profile("prkmk")
 def _free_compiled_programs_after_each_file():
     """A jitted function's cache keeps every program it compiled, and XLA maps
     each program's code in dozens of memory regions. One worker runs half the
-    suite, thousands of programs: without this, it reaches Linux's limit of
-    memory maps a process (`vm.max_map_count`) and XLA aborts while compiling."""
+    suite, thousands of programs: without this, it reaches Linux's limit on
+    memory maps per process (`vm.max_map_count`) and XLA aborts while compiling."""
     yield
     jax.clear_caches()
